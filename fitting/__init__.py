@@ -1,0 +1,1 @@
+"""fitting: end-to-end calibration of piezojax models by nonlinear least squares."""

@@ -1,0 +1,87 @@
+"""The hysteresis cell interface shared by every rate-independent operator."""
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jaxtyping import Array, ArrayLike, PyTree
+
+from .._checks import check_signal, common_float_dtype
+from .._custom_types import Signal, SignalLike
+
+
+def cast_module(module: eqx.Module, dtype) -> eqx.Module:
+    """Cast every floating array leaf of `module` to `dtype` (so float32 signals run in float32)."""
+
+    def cast(x):
+        if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dtype:
+            return x.astype(dtype)
+        return x
+
+    return jtu.tree_map(cast, module)
+
+
+def module_float_dtype(module: eqx.Module, *extra: ArrayLike):
+    """The common floating dtype of a module's array leaves and `extra` arrays."""
+    leaves = [x for x in jtu.tree_leaves(module) if eqx.is_array(x)]
+    return common_float_dtype(*leaves, *extra)
+
+
+class AbstractHysteresis(eqx.Module):
+    r"""A rate-independent hysteresis operator $y = \mathcal{H}[v]$, written as a cell.
+
+    A concrete operator defines `init()` (the relaxed / demagnetised state, input at 0) and
+    `step(state, v) -> (state, y)`, which advances the operator from the previous input sample (kept in the state)
+    to `v` along the straight line between them. Because the path between samples is a straight line, the exact
+    operators are rate-independent: inserting samples on that line changes nothing at the original samples.
+
+    `smoothing` (0 = exact) selects a smooth relaxation that keeps this property; see each operator.
+
+    `scan(signal, state)` runs the cell over a signal with `jax.lax.scan` and returns the final state with the
+    output; `__call__(signal, state=None)` returns only the output.
+    """
+
+    smoothing: eqx.AbstractVar[Array]
+
+    @abc.abstractmethod
+    def init(self) -> PyTree[Array]:
+        """The relaxed (demagnetised) initial state, with the input at 0."""
+
+    @abc.abstractmethod
+    def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
+        """Advance from the state's previous input to the input sample `v`; return `(state, y)`."""
+
+    def check(self) -> "AbstractHysteresis":
+        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        return self
+
+    def scan(self, signal: SignalLike, state: PyTree[Array] | None = None) -> tuple[PyTree[Array], Signal]:
+        """Run the operator over `signal` from `state` (default `init()`); return `(final_state, output)`.
+
+        **Arguments:**
+
+        - `signal`: 1-D input samples, shape `(time,)`.
+        - `state`: the state to start from, e.g. the final state of an earlier call. Default: `self.init()`.
+
+        **Returns:** `(final_state, y)` with `y` of shape `(time,)`.
+        """
+        dtype = module_float_dtype(self, signal)
+        signal = check_signal(signal, "signal", dtype)
+        op = cast_module(self, dtype).check()
+        if state is None:
+            state = op.init()
+        else:
+            state = jtu.tree_map(lambda s: jnp.asarray(s, dtype), state)
+        return jax.lax.scan(op.step, state, signal, unroll=op._unroll())
+
+    def __call__(self, signal: SignalLike, state: PyTree[Array] | None = None) -> Signal:
+        """Apply the operator to a 1-D `signal` (see `scan`) and return the output signal."""
+        return self.scan(signal, state)[1]
+
+    def _unroll(self) -> int:
+        # Measured on XLA:CPU (jax 0.10.2): unroll=1 is fastest for these small cells (unrolling slows them).
+        return 1
+
+
