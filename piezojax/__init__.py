@@ -4,3 +4,13 @@ from ._checks import PiezojaxValueError as PiezojaxValueError
 from ._hysteresis.base import AbstractHysteresis as AbstractHysteresis
 
 __version__ = "0.1.0"
+from ._parametrisation import (
+    AbstractReparam as AbstractReparam,
+    Bounded as Bounded,
+    OrderedPositive as OrderedPositive,
+    Positive as Positive,
+    constrain as constrain,
+    inv_softplus as inv_softplus,
+    softplus as softplus,
+    unwrap as unwrap,
+)

@@ -1,0 +1,167 @@
+"""Reparametrisations that map unconstrained arrays to valid parameters, for fitting.
+
+A model's constrained field is replaced (with `eqx.tree_at`, which bypasses `__init__` validation) by a wrapper holding
+an unconstrained array `raw`; `unwrap(tree)` turns every wrapper back into its constrained value. A least-squares solver
+then moves `raw` freely and every point it visits is a valid model:
+
+```python
+pi = pj.PrandtlIshlinskii(weights, thresholds, w0=1.0)
+params = pj.constrain(pi, lambda m: m.weights, pj.Positive)
+params = pj.constrain(params, lambda m: m.thresholds, pj.OrderedPositive)
+model = pj.unwrap(params)  # a valid PrandtlIshlinskii for any value of the raw arrays
+```
+"""
+
+import abc
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jaxtyping import Array, ArrayLike, PyTree
+
+from ._checks import PiezojaxValueError, as_float_array, concrete_or_none
+
+_T = TypeVar("_T")
+
+
+def softplus(x: ArrayLike) -> Array:
+    r"""Numerically safe $\log(1 + e^x)$ (gradient $\sigma(x)$ everywhere, no overflow)."""
+    return jax.nn.softplus(x)
+
+
+def inv_softplus(y: ArrayLike) -> Array:
+    r"""Inverse of `softplus` for $y > 0$: $x = y + \log(-\mathrm{expm1}(-y))$ (accurate for small and large y)."""
+    y = jnp.asarray(y)
+    return y + jnp.log(-jnp.expm1(-y))
+
+
+class AbstractReparam(eqx.Module):
+    """A constrained parameter stored as an unconstrained array `raw`; `unwrap()` gives the constrained value."""
+
+    raw: eqx.AbstractVar[Array]
+
+    @abc.abstractmethod
+    def unwrap(self) -> Array:
+        """The constrained value."""
+
+
+class Positive(AbstractReparam):
+    r"""Elementwise positive parameter: $x = \mathrm{softplus}(\mathrm{raw}) > 0$.
+
+    **Arguments:**
+
+    - `raw`: unconstrained array (any shape).
+
+    Use `Positive.from_value(x)` to wrap an existing positive value.
+    """
+
+    raw: Array = eqx.field(converter=jnp.asarray)
+
+    @classmethod
+    def from_value(cls, value: ArrayLike) -> "Positive":
+        """Wrap a strictly positive `value` (raises naming `value` if a concrete entry is ≤ 0)."""
+        value = as_float_array(value, "value")
+        concrete = concrete_or_none(value)
+        if concrete is not None and not (concrete > 0).all():
+            raise PiezojaxValueError(f"`value` must be strictly positive for Positive, got {concrete}")
+        return cls(inv_softplus(value))
+
+    def unwrap(self) -> Array:
+        return softplus(self.raw)
+
+
+class OrderedPositive(AbstractReparam):
+    r"""Strictly ascending, strictly positive 1-D parameter (e.g. play-operator thresholds).
+
+    $x_i = \mathrm{lower} + \sum_{j \le i} \mathrm{softplus}(\mathrm{raw}_j)$, so
+    $\mathrm{lower} < x_1 < x_2 < \dots$ for every value of `raw`. With the default `lower = 0` the first threshold
+    stays off $r = 0$, which is reserved for the explicit linear term of a Prandtl–Ishlinskii operator.
+
+    **Arguments:**
+
+    - `raw`: unconstrained 1-D array.
+    - `lower`: the bound every entry stays strictly above (a constant, not fitted).
+    """
+
+    raw: Array = eqx.field(converter=jnp.asarray)
+    lower: float = eqx.field(static=True, default=0.0)
+
+    @classmethod
+    def from_value(cls, value: ArrayLike, lower: float = 0.0) -> "OrderedPositive":
+        """Wrap a strictly ascending 1-D `value` with every entry > `lower`."""
+        value = as_float_array(value, "value")
+        if value.ndim != 1:
+            raise PiezojaxValueError(f"`value` must be 1-D for OrderedPositive, got shape {value.shape}")
+        gaps = jnp.diff(value, prepend=jnp.asarray([lower], value.dtype))
+        concrete = concrete_or_none(gaps)
+        if concrete is not None and not (concrete > 0).all():
+            raise PiezojaxValueError(
+                f"`value` must be strictly ascending and above {lower} for OrderedPositive, got {value}"
+            )
+        return cls(inv_softplus(gaps), lower)
+
+    def unwrap(self) -> Array:
+        return self.lower + jnp.cumsum(softplus(self.raw))
+
+
+class Bounded(AbstractReparam):
+    r"""Parameter inside an open interval: $x = \mathrm{low} + (\mathrm{high} - \mathrm{low})\,\sigma(\mathrm{raw})$.
+
+    **Arguments:**
+
+    - `raw`: unconstrained array.
+    - `low`, `high`: the bounds (constants, `low < high`).
+    """
+
+    raw: Array = eqx.field(converter=jnp.asarray)
+    low: float = eqx.field(static=True)
+    high: float = eqx.field(static=True)
+
+    def __check_init__(self):
+        if not self.low < self.high:
+            raise PiezojaxValueError(f"Bounded needs `low` < `high`, got low={self.low}, high={self.high}")
+
+    @classmethod
+    def from_value(cls, value: ArrayLike, low: float, high: float) -> "Bounded":
+        """Wrap a `value` strictly inside `(low, high)`."""
+        value = as_float_array(value, "value")
+        concrete = concrete_or_none(value)
+        if concrete is not None and not ((concrete > low) & (concrete < high)).all():
+            raise PiezojaxValueError(f"`value` must lie strictly inside ({low}, {high}), got {concrete}")
+        p = (value - low) / (high - low)
+        return cls(jnp.log(p) - jnp.log1p(-p), low, high)
+
+    def unwrap(self) -> Array:
+        return self.low + (self.high - self.low) * jax.nn.sigmoid(self.raw)
+
+
+def _is_reparam(x: Any) -> bool:
+    return isinstance(x, AbstractReparam)
+
+
+def unwrap(tree: PyTree[Any]) -> PyTree[Any]:
+    """Replace every `AbstractReparam` in `tree` by its constrained value (works under jit/vmap/grad)."""
+    return jtu.tree_map(lambda x: x.unwrap() if _is_reparam(x) else x, tree, is_leaf=_is_reparam)
+
+
+def constrain(
+    model: _T,
+    where: Callable[[_T], Any],
+    reparam: type[AbstractReparam] | Callable[[Array], AbstractReparam],
+) -> _T:
+    """Return `model` with the array selected by `where` wrapped by `reparam.from_value`.
+
+    **Arguments:**
+
+    - `model`: an equinox Module (or any PyTree).
+    - `where`: selects the array to constrain, as in `eqx.tree_at`, e.g. `lambda m: m.weights`.
+    - `reparam`: an `AbstractReparam` subclass with `from_value(value)` (`Positive`, `OrderedPositive`), or any
+      callable mapping the current value to a wrapper (e.g. `lambda x: Bounded.from_value(x, 0.0, 1.0)`).
+
+    **Returns:** the model with the wrapper in place; `unwrap` it before use.
+    """
+    factory = reparam.from_value if isinstance(reparam, type) else reparam
+    return eqx.tree_at(where, model, replace_fn=factory)
