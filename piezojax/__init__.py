@@ -14,3 +14,6 @@ from ._parametrisation import (
     softplus as softplus,
     unwrap as unwrap,
 )
+from ._hysteresis.play import PlayOperator as PlayOperator, StopOperator as StopOperator
+from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
+from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip

@@ -74,7 +74,9 @@ class AbstractHysteresis(eqx.Module):
             state = op.init()
         else:
             state = jtu.tree_map(lambda s: jnp.asarray(s, dtype), state)
-        return jax.lax.scan(op.step, state, signal, unroll=op._unroll())
+        # A plain closure, not the bound method: jax hashes the scan body, and a bound method of a Module hashes
+        # its (unhashable) array fields.
+        return jax.lax.scan(lambda carry, v: op.step(carry, v), state, signal, unroll=op._unroll())
 
     def __call__(self, signal: SignalLike, state: PyTree[Array] | None = None) -> Signal:
         """Apply the operator to a 1-D `signal` (see `scan`) and return the output signal."""

@@ -1,0 +1,126 @@
+r"""The Maxwell-slip operator: elasto-slide elements in parallel (paper 003 §3.3.1, after Goldfarb & Celanovic)."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._checks import PiezojaxValueError, check_vector, concrete_or_none
+from .._custom_types import ScalarLike, VectorLike
+from .base import AbstractHysteresis
+from .play import check_smoothing, error_if_bad_smoothing, param_dtype, scan_exact_or_smooth, stop_update
+
+
+class MaxwellSlip(AbstractHysteresis):
+    r"""The Maxwell-slip hysteresis model: $n$ spring + Coulomb-slider elements in parallel, driven by one input.
+
+    Mechanical form (paper 003 §3.3.1, Fig. 11–13, eq. 25–26): element $i$ is a spring of stiffness $k_i$ holding a
+    massless block of breakaway force $f_i$; with input displacement $x$ and block position $x_{b,i}$ its force is
+    $F_i = k_i (x - x_{b,i})$ while $|k_i (x - x_{b,i})| < f_i$ (stick), and the block slides so that
+    $F_i = \pm f_i$ otherwise. The spring elongation is therefore the stop operator of threshold $r_i = f_i / k_i$,
+    and
+
+    $F = \sum_i F_i = \sum_i k_i\, S_{f_i/k_i}[x]$,
+
+    which is the Prandtl–Ishlinskii operator with $w_0 = \sum_i k_i$, weights $-k_i$ and thresholds $f_i/k_i$.
+
+    Electrical analogue (paper 003 eq. 27–32, the voltage–charge hysteresis of the actuator; the equations are
+    images in our copy of the thesis, so this is the Goldfarb–Celanovic form the text describes): the input is the
+    charge $q$, element $i$ is a capacitor $C_i$ with breakaway voltage $v_i$ and "slid" charge $q_{b,i}$, its
+    voltage is $V_i = (q - q_{b,i})/C_i$ clamped at $\pm v_i$, and the output is the hysteresis voltage
+    $V_H = \sum_i V_i$. So `stiffness` $= 1/C_i$ (in V/C), `breakaway` $= v_i$ (in V), input $q$ (in C) and output
+    $V_H$ (in V), with charge thresholds $r_i = C_i v_i$; `MaxwellSlip.electrical(capacitances, breakaway_voltages)`
+    builds it.
+
+    All elements start relaxed (input 0, zero force). With `smoothing` $s > 0$ each element uses the smooth
+    rate-independent law of `play_step` (boundary layer $s f_i/k_i$). Works under `jit`, `vmap`, `jax.grad`,
+    `jax.jacfwd`.
+
+    **Arguments:**
+
+    - `stiffness`: $k_i > 0$, shape `(n,)`.
+    - `breakaway`: $f_i \geq 0$, shape `(n,)`, any order.
+    - `smoothing`: relative smoothing $s \geq 0$ (array field); 0 = exact.
+
+    **Returns:** called on a signal of shape `(time,)`, the total force (or $V_H$), shape `(time,)`.
+
+    ```python
+    gms = MaxwellSlip(jnp.array([2.0, 1.0]), jnp.array([1.0, 2.0]))
+    force = gms(jnp.array([0.25, 1.0, 3.0, 0.0]))  # [0.75, 2.0, 3.0, -2.0]
+    ```
+    """
+
+    stiffness: Float[Array, " n"]
+    breakaway: Float[Array, " n"]
+    smoothing: Float[Array, ""]
+
+    def __init__(self, stiffness: VectorLike, breakaway: VectorLike, smoothing: ScalarLike = 0.0):
+        dtype = param_dtype(stiffness, breakaway, smoothing)
+        self.stiffness = check_vector(stiffness, "stiffness", dtype)
+        self.breakaway = check_vector(breakaway, "breakaway", dtype)
+        if self.stiffness.shape != self.breakaway.shape:
+            raise PiezojaxValueError(
+                f"`stiffness` and `breakaway` must have the same shape, got {tuple(self.stiffness.shape)} and "
+                f"{tuple(self.breakaway.shape)}"
+            )
+        k, f = concrete_or_none(self.stiffness), concrete_or_none(self.breakaway)
+        if k is not None and not np.all(np.isfinite(k) & (k > 0)):
+            raise PiezojaxValueError(f"`stiffness` must be finite and > 0, got {k}")
+        if f is not None and not np.all(np.isfinite(f) & (f >= 0)):
+            raise PiezojaxValueError(f"`breakaway` must be finite and >= 0, got {f}")
+        self.smoothing = check_smoothing(smoothing, dtype)
+
+    @classmethod
+    def electrical(
+        cls, capacitances: VectorLike, breakaway_voltages: VectorLike, smoothing: ScalarLike = 0.0
+    ) -> "MaxwellSlip":
+        r"""The electrical Maxwell-slip model (input charge $q$, output $V_H$): `stiffness` $= 1/C_i$.
+
+        **Arguments:**
+
+        - `capacitances`: $C_i > 0$ in F, shape `(n,)`.
+        - `breakaway_voltages`: $v_i \geq 0$ in V, shape `(n,)`.
+        - `smoothing`: as for `MaxwellSlip`.
+
+        **Returns:** the `MaxwellSlip` operator mapping charge to hysteresis voltage.
+        """
+        dtype = param_dtype(capacitances, breakaway_voltages, smoothing)
+        c = check_vector(capacitances, "capacitances", dtype)
+        value = concrete_or_none(c)
+        if value is not None and not np.all(np.isfinite(value) & (value > 0)):
+            raise PiezojaxValueError(f"`capacitances` must be finite and > 0, got {value}")
+        return cls(1 / c, breakaway_voltages, smoothing)
+
+    @property
+    def thresholds(self) -> Array:
+        r"""The input thresholds $r_i = f_i / k_i$ (displacement, or charge $C_i v_i$) at which each element slips."""
+        return self.breakaway / self.stiffness
+
+    def check(self) -> "MaxwellSlip":
+        k = eqx.error_if(
+            self.stiffness, ~jnp.all(jnp.isfinite(self.stiffness) & (self.stiffness > 0)), "`stiffness` must be > 0"
+        )
+        f = eqx.error_if(
+            self.breakaway, ~jnp.all(jnp.isfinite(self.breakaway) & (self.breakaway >= 0)), "`breakaway` must be >= 0"
+        )
+        return eqx.tree_at(
+            lambda m: (m.stiffness, m.breakaway, m.smoothing), self, (k, f, error_if_bad_smoothing(self.smoothing))
+        )
+
+    def init(self) -> tuple[Array, Array]:
+        """Relaxed state `(previous input, spring elongations) = (0, 0)`."""
+        dtype = self.stiffness.dtype
+        return jnp.zeros((), dtype), jnp.zeros(self.stiffness.shape, dtype)
+
+    def step(self, state, x):
+        return self._step(state, x, None)
+
+    def scan(self, signal, state=None):
+        """As `AbstractHysteresis.scan`; the exact or smooth loop is chosen outside the scan (see
+        `scan_exact_or_smooth`), with the same numbers as scanning `step`."""
+        return scan_exact_or_smooth(self, signal, state)
+
+    def _step(self, state, x, exact):
+        x_prev, z = state
+        z = stop_update(z, x - x_prev, self.thresholds, self.smoothing, exact)
+        return (x, z), jnp.dot(self.stiffness, z)
