@@ -14,6 +14,8 @@ from ._parametrisation import (
     softplus as softplus,
     unwrap as unwrap,
 )
+from ._hysteresis.bouc_wen import BoucWen as BoucWen
+from ._hysteresis.preisach import Preisach as Preisach
 from ._hysteresis.initialise import pi_cold_start as pi_cold_start, pi_weights_least_squares as pi_weights_least_squares
 from ._hysteresis.play import PlayOperator as PlayOperator, StopOperator as StopOperator
 from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii

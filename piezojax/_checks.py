@@ -22,7 +22,7 @@ def common_float_dtype(*xs: ArrayLike) -> np.dtype:
     """
     dtype = None
     for x in xs:
-        d = np.result_type(x) if not hasattr(x, "dtype") else np.dtype(x.dtype)
+        d = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
         if not jnp.issubdtype(d, jnp.inexact):
             continue
         dtype = d if dtype is None else np.promote_types(dtype, d)
