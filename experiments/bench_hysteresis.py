@@ -10,6 +10,7 @@ several repeats after a warm-up call that compiles.
 """
 
 import argparse
+import os
 import time
 
 import jax
@@ -67,7 +68,14 @@ def best_time(fn, repeats):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short signals only (for tests)")
+    parser.add_argument(
+        "--default-xla-flags",
+        action="store_true",
+        help="do not raise XLA:CPU's small-loop threshold (see piezojax.enable_fast_cpu_scans)",
+    )
     args = parser.parse_args(argv)
+    if not args.default_xla_flags:
+        pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
 
     n = 16
@@ -88,6 +96,7 @@ def main(argv=None):
     batches = [1, 4] if args.quick else [1, 16]
     repeats = 2 if args.quick else 3
     print(f"PI forward, n = {n} plays, float64, {jax.devices()[0].platform}; baseline: {baseline_name}")
+    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
     print(f"{'samples':>9} {'B':>3} {'jax ns/sample':>14} {'base ns/sample':>15} {'ratio':>7}")
     f_single = jax.jit(lambda v: op(v))
     f_batch = jax.jit(jax.vmap(lambda v: op(v)))

@@ -20,3 +20,4 @@ from ._hysteresis.initialise import pi_cold_start as pi_cold_start, pi_weights_l
 from ._hysteresis.play import PlayOperator as PlayOperator, StopOperator as StopOperator
 from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
 from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip
+from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans

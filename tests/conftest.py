@@ -4,6 +4,10 @@ import jax
 import pytest
 from hypothesis import HealthCheck, settings
 
+from piezojax import enable_fast_cpu_scans
+
+# Before any computation: long scan bodies (vmap, jacfwd) compile to fused loops (see piezojax/_config.py).
+enable_fast_cpu_scans()
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
