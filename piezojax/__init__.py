@@ -14,6 +14,16 @@ from ._parametrisation import (
     softplus as softplus,
     unwrap as unwrap,
 )
+from ._linear.base import AbstractLinearSystem as AbstractLinearSystem
+from ._linear.butterworth import butterworth as butterworth
+from ._linear.discretise import (
+    DiscreteStateSpace as DiscreteStateSpace,
+    discretise_state_space as discretise_state_space,
+    time_step as time_step,
+)
+from ._linear.stable import StableTransferFunction as StableTransferFunction
+from ._linear.state_space import StateSpace as StateSpace
+from ._linear.transfer_function import TransferFunction as TransferFunction
 from ._hysteresis.bouc_wen import BoucWen as BoucWen
 from ._hysteresis.preisach import Preisach as Preisach
 from ._hysteresis.initialise import pi_cold_start as pi_cold_start, pi_weights_least_squares as pi_weights_least_squares

@@ -1,0 +1,106 @@
+"""A linear system given by transfer-function polynomial coefficients (scipy convention)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_finite,
+    check_vector,
+    common_float_dtype,
+    concrete_or_none,
+)
+from .base import AbstractLinearSystem
+
+
+def normalise_tf(num: ArrayLike, den: ArrayLike) -> tuple[Array, Array]:
+    """Validate `num`/`den`, divide both by `den[0]` and left-pad `num` with zeros to the length of `den`."""
+    num, den = as_float_array(num, "num"), as_float_array(den, "den")
+    dtype = common_float_dtype(num, den)
+    num = check_vector(jnp.atleast_1d(num), "num", dtype)
+    den = check_vector(jnp.atleast_1d(den), "den", dtype)
+    num_c, den_c = concrete_or_none(num), concrete_or_none(den)
+    if num_c is not None:
+        if not np.all(np.isfinite(num_c)):
+            raise PiezojaxValueError("`num` contains NaN or infinite values")
+        # Leading zeros do not change the degree (scipy strips them too).
+        nz = np.flatnonzero(num_c)
+        lead = int(nz[0]) if nz.size else num_c.shape[0] - 1
+        if num_c.shape[0] - lead <= den.shape[0]:
+            num = num[max(0, min(lead, num.shape[0] - den.shape[0])) :] if num.shape[0] > den.shape[0] else num
+    else:
+        num = check_finite(num, "num")
+    if den_c is not None:
+        if not np.all(np.isfinite(den_c)):
+            raise PiezojaxValueError("`den` contains NaN or infinite values")
+        if den_c[0] == 0:
+            raise PiezojaxValueError(f"`den` must have a nonzero leading coefficient den[0], got {den_c.tolist()}")
+    else:
+        den = check_finite(den, "den")
+        den = eqx.error_if(den, den[0] == 0, "`den` must have a nonzero leading coefficient den[0]")
+    if num.shape[0] > den.shape[0]:
+        raise PiezojaxValueError(
+            f"the transfer function must be proper: `num` has degree {num.shape[0] - 1} > "
+            f"degree {den.shape[0] - 1} of `den`"
+        )
+    num = jnp.concatenate([jnp.zeros((den.shape[0] - num.shape[0],), dtype), num])
+    return num / den[0], den / den[0]
+
+
+class TransferFunction(AbstractLinearSystem):
+    r"""A SISO transfer function $G(s) = \dfrac{b_0 s^m + \dots + b_m}{a_0 s^n + \dots + a_n}$, $m \le n$.
+
+    Coefficients are highest power first, as in `scipy.signal.TransferFunction` / `lti`. They are stored normalised
+    ($a_0 = 1$) with `num` left-padded to the length of `den`.
+
+    The realisation is the controllable canonical form of `scipy.signal.tf2ss`, rescaled in frequency by
+    $w = \max_j |a_j|^{1/j}$ (a bound on the pole magnitudes): $A = w\begin{bmatrix}-a_1/w & \cdots & -a_n/w^n\\
+    I & 0\end{bmatrix}$, $B = w e_1$, $C_j = (b_j - b_0 a_j)/w^j$, $D = b_0$. The transfer function is unchanged;
+    the entries of $A\,dt$ stay of order $w\,dt$ instead of $\max|a_j|\,dt$, which keeps the matrix exponential
+    accurate for stiff denominators. Polynomial coefficients are still a poor parametrisation for lightly damped or
+    widely spread poles; use `StableTransferFunction` (cascade of sections) for those.
+
+    **Arguments:**
+
+    - `num`: numerator coefficients, 1-D, degree ≤ degree of `den` (leading zeros are ignored).
+    - `den`: denominator coefficients, 1-D, `den[0] != 0`.
+
+    ```python
+    G = pj.TransferFunction([1.0], [1.0, 2 * 0.1 * 10.0, 100.0])  # 1 / (s^2 + 2 s + 100)
+    y = G.simulate(jnp.ones(2000), 1e-3)                          # step response
+    ```
+    """
+
+    num: Float[Array, " n+1"]
+    den: Float[Array, " n+1"]
+
+    def __init__(self, num: ArrayLike, den: ArrayLike):
+        self.num, self.den = normalise_tf(num, den)
+
+    def state_space(self):
+        num, den = self.num, self.den
+        dtype = den.dtype
+        n = den.shape[0] - 1
+        D = num[0]
+        if n == 0:
+            return jnp.zeros((0, 0), dtype), jnp.zeros((0,), dtype), jnp.zeros((0,), dtype), D
+        a = den[1:]
+        c = num[1:] - D * a
+        powers = jnp.arange(1, n + 1, dtype=dtype)
+        # The realisation's output does not depend on w (a similarity transform), so w carries no gradient.
+        w = jax.lax.stop_gradient(jnp.max(jnp.abs(a) ** (1 / powers)))
+        w = jnp.where(w > 0, w, jnp.ones((), dtype))
+        wp = w**powers
+        A = jnp.zeros((n, n), dtype).at[0, :].set(-a / wp * w)
+        A = A + jnp.diag(jnp.full((n - 1,), w, dtype), -1)
+        B = jnp.zeros((n,), dtype).at[0].set(w)
+        C = c / wp
+        return A, B, C, D
+
+    def transfer_function(self) -> tuple[Float[Array, " n+1"], Float[Array, " n+1"]]:
+        """The (normalised, padded) coefficients `(num, den)`."""
+        return self.num, self.den
