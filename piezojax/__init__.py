@@ -14,6 +14,9 @@ from ._parametrisation import (
     softplus as softplus,
     unwrap as unwrap,
 )
+from ._creep.base import AbstractCreep as AbstractCreep
+from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
+from ._creep.logarithmic import LogarithmicCreep as LogarithmicCreep
 from ._linear.base import AbstractLinearSystem as AbstractLinearSystem
 from ._linear.butterworth import butterworth as butterworth
 from ._linear.discretise import (
@@ -24,6 +27,8 @@ from ._linear.discretise import (
 from ._linear.stable import StableTransferFunction as StableTransferFunction
 from ._linear.state_space import StateSpace as StateSpace
 from ._linear.transfer_function import TransferFunction as TransferFunction
+from ._creep.linear import LinearCreep as LinearCreep
+from ._actuator import Actuator as Actuator, ActuatorOutput as ActuatorOutput
 from ._hysteresis.bouc_wen import BoucWen as BoucWen
 from ._hysteresis.preisach import Preisach as Preisach
 from ._hysteresis.initialise import pi_cold_start as pi_cold_start, pi_weights_least_squares as pi_weights_least_squares

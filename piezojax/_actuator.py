@@ -1,0 +1,188 @@
+"""The composed piezoelectric actuator: voltage → hysteresis → creep → dynamics → displacement, plus its charge."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._checks import PiezojaxValueError, as_float_array, check_scalar, check_signal, concrete_or_none
+from ._creep.base import AbstractCreep, check_dt
+from ._creep.linear import LinearCreep
+from ._custom_types import Signal, SignalLike
+from ._hysteresis.base import AbstractHysteresis, cast_module, module_float_dtype
+from ._linear.base import AbstractLinearSystem
+
+_STRUCTURES = ("parallel", "series")
+
+
+class ActuatorOutput(eqx.Module):
+    """What an `Actuator` simulation returns: three signals of the input's length (batched under `vmap`).
+
+    **Fields:**
+
+    - `displacement`: $\\delta_k$ [m].
+    - `charge`: $q_k$ on the electrodes [C].
+    - `current`: $i_k$ drawn from the source [A] (see `Actuator` for its sampled definition).
+    """
+
+    displacement: Float[Array, " time"]
+    charge: Float[Array, " time"]
+    current: Float[Array, " time"]
+
+
+class Actuator(eqx.Module):
+    r"""A piezoelectric actuator as one differentiable model: hysteresis, creep and linear dynamics, and its charge.
+
+    Displacement (the Hammerstein chain of papers 000/001), with $\mathcal{H}$ the hysteresis, $\mathcal{C}$ the
+    creep and $G(s)$ the structural dynamics:
+
+    - `structure="parallel"` (default; what papers 000 and 001 use):
+      $\delta = G(s)\big[\mathcal{H}[V_{in}] + \mathcal{C}[V_{in}]\big]$. Paper 001 puts the PI operator $F_H$ and
+      the creep transfer function $F_C(s)$ (eq. 9) in parallel, both driven by $V_{in}$ (its eq. 4 subtracts
+      $F_C(s)V_{in} + F_H(V_{in})$); paper 000 drives $G(s)$ with a term proportional to $V_{in}$ plus a creep term
+      ($F_t$, eq. 9). Use a creep-only block here ($h(0^+) = 0$: `KelvinVoigtCreep(..., k0=None)`,
+      `LogarithmicCreep(..., instantaneous=False)`, or a `LinearCreep` with $a_0 = 0$), else its instantaneous
+      part duplicates the hysteresis' linear term $w_0$.
+    - `structure="series"`: $\delta = G(s)\big[\mathcal{C}[\mathcal{H}[V_{in}]]\big]$, the chain
+      V_in → hysteresis → creep → dynamics, with a DC-normalised creep ($h(0^+) = 1$ plus slow parts), so the creep
+      scales with the hysteretic (polarisation) output.
+
+    A missing block is the identity (`hysteresis=None`: $\mathcal{H}[V] = V$; `dynamics=None`: $G = 1$); a missing
+    creep means no creep (both structures then give $\delta = G[\mathcal{H}[V_{in}]]$).
+
+    Charge and current (paper 003 after Goldfarb & Celanovic, $q = C V_p + T_{em} x$; paper 000 $Q = C_r V_{in} +
+    Q_\delta$ with $Q_\delta \propto \delta$): $q_k = C_p V_k + T\,\delta_k$, so the displacement-coupled charge
+    carries the hysteresis, creep and dynamics of $\delta$. The current is the charge increment over the sample,
+    $i_k = (q_k - q_{k-1})/dt$ with $q_{-1} = 0$ (at rest before the record): the exact mean current over
+    $[t_{k-1}, t_k]$, equal to the derivative of the piecewise-linear interpolant of $q$ on that interval, and
+    $dt\sum_{j \le k} i_j = q_k$ exactly (what a charge integrator would read). $i_0 = q_0/dt$ is the charging
+    of the electrodes when the record starts at $V_0 \ne 0$.
+
+    Every array leaf (the blocks' parameters, `capacitance`, `coupling`) is a parameter: `jax.jacfwd` with respect
+    to the whole module gives the sensitivities of every output. Works under `jit`, `vmap` (batches of equal-length
+    experiments), `jax.grad` and `jax.jacfwd`.
+
+    **Arguments:**
+
+    - `hysteresis`: an `AbstractHysteresis` (e.g. `PrandtlIshlinskii`), or `None`.
+    - `creep`: an `AbstractCreep` (`LogarithmicCreep`, `KelvinVoigtCreep`, `LinearCreep`), an
+      `AbstractLinearSystem` (wrapped as `LinearCreep`), or `None`.
+    - `dynamics`: an `AbstractLinearSystem` $G(s)$ from the driving term to displacement, or `None`.
+    - `capacitance`: $C_p \ge 0$ [F].
+    - `coupling`: $T$ [C/m], the charge per unit displacement (default 0).
+    - `structure`: `"parallel"` or `"series"` (static).
+
+    **Example:**
+
+    ```python
+    act = pj.Actuator(pj.PrandtlIshlinskii(w, r, w0=1.0), pj.KelvinVoigtCreep([20.0], [2.0], k0=None),
+                      pj.StableTransferFunction(1e-7, omega=[2 * jnp.pi * 800], zeta=[0.05]), capacitance=1.7e-9)
+    out = act.simulate(v_in, dt=1e-4)   # out.displacement, out.charge, out.current
+    ```
+    """
+
+    hysteresis: AbstractHysteresis | None
+    creep: AbstractCreep | None
+    dynamics: AbstractLinearSystem | None
+    capacitance: Float[Array, ""]
+    coupling: Float[Array, ""]
+    structure: str = eqx.field(static=True)
+
+    def __init__(
+        self,
+        hysteresis: AbstractHysteresis | None = None,
+        creep: AbstractCreep | AbstractLinearSystem | None = None,
+        dynamics: AbstractLinearSystem | None = None,
+        capacitance: ArrayLike = 0.0,
+        coupling: ArrayLike = 0.0,
+        structure: str = "parallel",
+    ):
+        if hysteresis is not None and not isinstance(hysteresis, AbstractHysteresis):
+            raise PiezojaxValueError(
+                f"`hysteresis` must be an AbstractHysteresis or None, got {type(hysteresis).__name__}"
+            )
+        if isinstance(creep, AbstractLinearSystem):
+            creep = LinearCreep(creep)
+        if creep is not None and not isinstance(creep, AbstractCreep):
+            raise PiezojaxValueError(
+                f"`creep` must be an AbstractCreep, an AbstractLinearSystem or None, got {type(creep).__name__}"
+            )
+        if dynamics is not None and not isinstance(dynamics, AbstractLinearSystem):
+            raise PiezojaxValueError(
+                f"`dynamics` must be an AbstractLinearSystem or None, got {type(dynamics).__name__}"
+            )
+        if structure not in _STRUCTURES:
+            raise PiezojaxValueError(f"`structure` must be one of {_STRUCTURES}, got {structure!r}")
+        capacitance_value = concrete_or_none(capacitance)
+        if capacitance_value is not None and not (
+            np.all(np.isfinite(capacitance_value)) and np.all(capacitance_value >= 0)
+        ):
+            raise PiezojaxValueError(f"`capacitance` must be finite and >= 0, got {capacitance_value}")
+        coupling_value = concrete_or_none(coupling)
+        if coupling_value is not None and not np.all(np.isfinite(coupling_value)):
+            raise PiezojaxValueError(f"`coupling` must be finite, got {coupling_value}")
+        # plain numbers follow the blocks' dtype (float32 blocks stay float32)
+        typed = [x for x in (capacitance, coupling) if hasattr(x, "dtype")]
+        dtype = module_float_dtype((hysteresis, creep, dynamics), *typed)
+        self.hysteresis = hysteresis
+        self.creep = creep
+        self.dynamics = dynamics
+        self.capacitance = check_scalar(as_float_array(capacitance, "capacitance", dtype), "capacitance")
+        self.coupling = check_scalar(as_float_array(coupling, "coupling", dtype), "coupling")
+        self.structure = structure
+
+    def check(self) -> "Actuator":
+        """`self` with the data-dependent checks of `capacitance` and `coupling` attached (`eqx.error_if`)."""
+        c = eqx.error_if(
+            self.capacitance,
+            ~(jnp.isfinite(self.capacitance) & (self.capacitance >= 0)),
+            "`capacitance` must be finite and >= 0",
+        )
+        t = eqx.error_if(self.coupling, ~jnp.isfinite(self.coupling), "`coupling` must be finite")
+        return eqx.tree_at(lambda m: (m.capacitance, m.coupling), self, (c, t))
+
+    def drive(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
+        r"""The input of the dynamics: $\mathcal{H}[V] + \mathcal{C}[V]$ (parallel) or $\mathcal{C}[\mathcal{H}[V]]$
+        (series); equal to the quasi-static displacement when $G(0) = 1$. Same arguments as `simulate`."""
+        return self._drive(*self._prepare(v_in, dt, hold), hold)
+
+    def simulate(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> ActuatorOutput:
+        """Simulate one experiment from rest (demagnetised hysteresis, creep and dynamics at rest, $V = 0$ before).
+
+        **Arguments:**
+
+        - `v_in`: applied voltage samples [V], shape `(time,)`; `jax.vmap` over a batch of equal-length records.
+        - `dt`: sample step [s] (scalar > 0).
+        - `hold`: how the creep and dynamics see their sampled inputs between samples, `"zoh"` or `"foh"`.
+
+        **Returns:** an `ActuatorOutput` with `displacement`, `charge`, `current`, each of shape `(time,)`.
+        """
+        m, v, dt = self._prepare(v_in, dt, hold)
+        u = m._drive(m, v, dt, hold)
+        delta = u if m.dynamics is None else m.dynamics.simulate(u, dt, hold=hold)
+        charge = m.capacitance * v + m.coupling * delta
+        current = jnp.diff(charge, prepend=jnp.zeros((1,), charge.dtype)) / dt
+        return ActuatorOutput(delta, charge, current)
+
+    def __call__(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> ActuatorOutput:
+        """Same as `simulate`."""
+        return self.simulate(v_in, dt, hold)
+
+    # -------------------------------------------------------------------------------------------------------------
+
+    def _prepare(self, v_in, dt, hold):
+        if hold not in ("zoh", "foh"):
+            raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
+        dtype = module_float_dtype(self, v_in, dt)
+        v = check_signal(v_in, "v_in", dtype)
+        dt = check_dt(dt, dtype)
+        return cast_module(self, dtype).check(), v, dt
+
+    @staticmethod
+    def _drive(m: "Actuator", v: Array, dt: Array, hold: str) -> Array:
+        h = v if m.hysteresis is None else m.hysteresis(v)
+        if m.creep is None:
+            return h
+        if m.structure == "series":
+            return m.creep.simulate(h, dt, hold=hold)
+        return h + m.creep.simulate(v, dt, hold=hold)

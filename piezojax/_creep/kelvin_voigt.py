@@ -1,0 +1,121 @@
+"""Kelvin–Voigt creep chain: a static compliance plus a sum of first-order lags."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike
+
+from .._checks import PiezojaxValueError, check_scalar, check_vector, common_float_dtype
+from .base import AbstractCreep, check_positive, error_if_not_positive
+
+
+def _foh_psi(x: Array) -> Array:
+    r"""$\psi(x) = (x - 1 + e^{-x}) / x^2 = \sum_{n \ge 0} (-x)^n/(n+2)!$, accurate for every $x > 0$.
+
+    The closed form cancels catastrophically for small $x = dt/\tau$ (slow creep, fast sampling), so below 0.5 the
+    series (14 terms, truncation < 1e-16) is used.
+    """
+    small = x < 0.5
+    xs = jnp.where(small, x, 0.0)
+    coeffs = [1.0]
+    for n in range(1, 14):
+        coeffs.append(coeffs[-1] / (n + 2))  # 1/(n+2)! relative to 1/2!
+    series = jnp.zeros_like(x)
+    for c in reversed(coeffs):
+        series = series * (-xs) + c
+    series = series / 2.0
+    xl = jnp.where(small, 1.0, x)
+    direct = (xl + jnp.expm1(-xl)) / (xl * xl)
+    return jnp.where(small, series, direct)
+
+
+class KelvinVoigtCreep(AbstractCreep):
+    r"""Kelvin–Voigt creep chain: $y = \left(\frac{1}{k_0} + \sum_i \frac{1}{k_i}\,\frac{1}{1 + \tau_i s}\right) u$.
+
+    A spring $k_0$ in series with Kelvin–Voigt elements (spring $k_i$ parallel to a damper $k_i\tau_i$), driven by
+    the input as a force. Step response $h(t) = 1/k_0 + \sum_i (1 - e^{-t/\tau_i})/k_i$.
+
+    Simulation is exact for the held input (diagonal state, one lag per element, $a_i = e^{-dt/\tau_i}$):
+
+    - ZOH: $x_{i,k+1} = a_i x_{i,k} + (1 - a_i)\,u_k$;
+    - FOH: $x_{i,k+1} = a_i x_{i,k} + (1 - a_i - b_i)\,u_k + b_i\,u_{k+1}$ with
+      $b_i = 1 - \tau_i(1 - a_i)/dt$ (evaluated without cancellation);
+
+    and $y_k = u_k/k_0 + \sum_i x_{i,k}/k_i$, from rest ($x_0 = 0$).
+
+    **Arguments:**
+
+    - `stiffnesses`: $k_i > 0$, shape `(n,)`.
+    - `time_constants`: $\tau_i > 0$ [s], shape `(n,)`.
+    - `k0`: the instantaneous stiffness $k_0 > 0$, or `None` for no instantaneous term ($h(0^+) = 0$: the creep
+      part alone, for use in parallel with the hysteresis). Default 1.0 ($h(0^+) = 1$, DC-normalised at $0^+$).
+
+    **Example:**
+
+    ```python
+    creep = pj.KelvinVoigtCreep(stiffnesses=[20.0, 50.0], time_constants=[0.5, 20.0])
+    y = creep.simulate(jnp.ones(1000), dt=1e-2)  # y[k] = 1 + (1 - exp(-t/0.5))/20 + (1 - exp(-t/20))/50
+    ```
+    """
+
+    stiffnesses: Array = eqx.field(converter=jnp.asarray)
+    time_constants: Array = eqx.field(converter=jnp.asarray)
+    k0: Array | None
+
+    def __init__(self, stiffnesses: ArrayLike, time_constants: ArrayLike, k0: ArrayLike | None = 1.0):
+        k = check_vector(stiffnesses, "stiffnesses")
+        tau = check_vector(time_constants, "time_constants")
+        if k.shape != tau.shape:
+            raise PiezojaxValueError(
+                f"`stiffnesses` and `time_constants` must have the same shape, got {tuple(k.shape)} "
+                f"and {tuple(tau.shape)}"
+            )
+        self.stiffnesses = check_positive(k, "stiffnesses", raw=stiffnesses)
+        self.time_constants = check_positive(tau, "time_constants", raw=time_constants)
+        if isinstance(k0, int | float):  # a plain number follows the parameters' dtype (float32 stays float32)
+            k0 = jnp.asarray(k0, common_float_dtype(self.stiffnesses, self.time_constants))
+        self.k0 = None if k0 is None else check_positive(check_scalar(k0, "k0"), "k0", raw=k0)
+
+    def check(self) -> "KelvinVoigtCreep":
+        k = error_if_not_positive(self.stiffnesses, "stiffnesses")
+        tau = error_if_not_positive(self.time_constants, "time_constants")
+        out = eqx.tree_at(lambda m: (m.stiffnesses, m.time_constants), self, (k, tau))
+        if self.k0 is not None:
+            out = eqx.tree_at(lambda m: m.k0, out, error_if_not_positive(self.k0, "k0"))
+        return out
+
+    def _c0(self, dtype) -> Array:
+        return jnp.zeros((), dtype) if self.k0 is None else 1 / self.k0
+
+    def step_response(self, t: ArrayLike) -> Array:
+        t = jnp.asarray(t)
+        lags = -jnp.expm1(-t[..., None] / self.time_constants) / self.stiffnesses
+        return self._c0(lags.dtype) + jnp.sum(lags, axis=-1)
+
+    def instantaneous_gain(self) -> Array:
+        return self._c0(self.stiffnesses.dtype)
+
+    def _simulate(self, u: Array, dt: Array, hold: str) -> Array:
+        x = dt / self.time_constants
+        a = jnp.exp(-x)
+        one_minus_a = -jnp.expm1(-x)
+        c = 1 / self.stiffnesses
+        # Elementwise products only in the scan body: under jacfwd a (batched) dot_general in a scan body costs
+        # ~5 µs per step on XLA:CPU, elementwise ~0.1 µs (measured in experiments/bench_dynamics.py).
+        if hold == "zoh":
+
+            def step(state, uk):
+                return a * state + one_minus_a * uk, jnp.sum(c * state)
+
+            _, lagged = jax.lax.scan(step, jnp.zeros_like(c), u)
+        else:
+            b1 = x * _foh_psi(x)
+            b0 = one_minus_a - b1
+            u_next = jnp.concatenate([u[1:], u[-1:]])  # the last update is never output
+
+            def step(state, uu):
+                uk, uk1 = uu[0], uu[1]
+                return a * state + b0 * uk + b1 * uk1, jnp.sum(c * state)
+
+            _, lagged = jax.lax.scan(step, jnp.zeros_like(c), jnp.stack([u, u_next], axis=1))
+        return self._c0(u.dtype) * u + lagged
