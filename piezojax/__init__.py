@@ -28,6 +28,9 @@ from ._linear.stable import StableTransferFunction as StableTransferFunction
 from ._linear.state_space import StateSpace as StateSpace
 from ._linear.transfer_function import TransferFunction as TransferFunction
 from ._creep.linear import LinearCreep as LinearCreep
+from ._nonlinear._input import SampledInput as SampledInput, simulate_ode as simulate_ode
+from ._nonlinear.bouc_wen_oscillator import BoucWenOscillator as BoucWenOscillator
+from ._nonlinear.electromechanical import ElectromechanicalActuator as ElectromechanicalActuator
 from ._actuator import Actuator as Actuator, ActuatorOutput as ActuatorOutput
 from ._hysteresis.bouc_wen import BoucWen as BoucWen
 from ._hysteresis.preisach import Preisach as Preisach

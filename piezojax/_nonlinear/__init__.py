@@ -1,0 +1,1 @@
+"""Continuous-time nonlinear models integrated with diffrax (Bouc-Wen oscillator, electromechanical actuator)."""

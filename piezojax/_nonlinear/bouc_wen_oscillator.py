@@ -1,0 +1,160 @@
+"""The Bouc-Wen hysteretic oscillator (the nonlinear system-identification benchmark of Noel & Schoukens)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._checks import PiezojaxValueError, check_scalar, common_float_dtype, concrete_or_none
+from .._custom_types import Signal, SignalLike
+from ._input import check_samples, check_step, simulate_ode
+
+
+def safe_abs_pow(x: Array, p: Array) -> Array:
+    r"""$|x|^p$ with finite derivatives everywhere, including $x = 0$ (where it returns 0 for $p > 0$).
+
+    The plain `jnp.abs(x) ** p` has a NaN derivative with respect to `p` (via $\log 0$) and, for $p < 1$, an
+    infinite one with respect to `x` at 0; here the logarithm only ever sees a positive argument.
+    """
+    ax = jnp.abs(x)
+    pos = ax > 0
+    safe = jnp.where(pos, ax, jnp.ones_like(ax))
+    return jnp.where(pos, jnp.exp(p * jnp.log(safe)), jnp.zeros_like(ax))
+
+
+_NAMES = ("m", "c", "k", "alpha", "beta", "gamma", "delta", "nu")
+
+
+class BoucWenOscillator(eqx.Module):
+    r"""Single-degree-of-freedom oscillator with a Bouc-Wen hysteretic restoring force, driven by a force $u(t)$.
+
+    $$m\ddot y + c\dot y + k y + z = u,\qquad
+      \dot z = \alpha\dot y - \beta\left(\gamma|\dot y|\,|z|^{\nu-1}z + \delta\,\dot y\,|z|^{\nu}\right)$$
+
+    This is the convention of the hysteretic benchmark (Noel & Schoukens, 4TU.ResearchData doi 10.4121/12967592);
+    the defaults are its nominal values (SI units). The system starts from rest ($y = \dot y = z = 0$) at the first
+    sample.
+
+    **Input hold.** The benchmark data were generated from a multisine defined in continuous time; simulating its
+    `train.h5` record with each hold and comparing with the measured output showed: band-limited periodic
+    interpolation (`hold="periodic"`) matches to the noise level (RMS 7.3e-6 m over the first 1000 samples, residual
+    white), linear interpolation leaves 1.04e-5 m, zero-order hold 1.06e-4 m. So use `"periodic"` for multisine
+    records that hold whole periods, `"linear"` or `"zoh"` for other data.
+
+    **Integration.** diffrax `Tsit5`. Default: adaptive steps (`diffrax.PIDController`, `rtol=1e-8`) on the states
+    scaled to O(1) (displacement by $F/(k + \alpha)$, velocity by that times $\sqrt{(k + \alpha)/m}$, $z$ by $F$, with
+    $F$ the largest input magnitude). `rtol=None` gives fixed steps `dt / substeps` on a grid aligned with the
+    samples. Measured on the benchmark (first 1000 samples, periodic hold, against `rtol=1e-12`): adaptive
+    `rtol=1e-8` is within 9e-9 m and ran in 0.21 s; fixed 4 sub-steps within 1.8e-6 m in 0.31 s; fixed 8 within
+    1.4e-7 m in 0.79 s (2-core CPU, shared). The fixed-step solution converges only at about second order, because
+    the vector field has kinks ($|\dot y|$, $\mathrm{sign}(z)$) that the adaptive controller steps around.
+    Adjoint: `diffrax.ForwardMode`, so `jax.jacfwd` and `jax.jvp` work, and `jax.vmap` over inputs; reverse mode
+    (`jax.grad`) is not supported. $|z|^{\nu}$ uses a safe power, so derivatives are finite at $z = 0$. For
+    finite-difference checks of derivatives use fixed steps (adaptive step selection moves with the parameters).
+
+    **Fitting.** In SI units the parameters span 1 to 5e4, so Jacobian columns differ by orders of magnitude. Fit
+    log-multipliers of the positive parameters and the O(1) exponents directly, e.g.
+    `eqx.tree_at(lambda s: (s.k, s.alpha), model, (5e4 * jnp.exp(th[0]), 5e4 * jnp.exp(th[1])))`.
+
+    **Arguments:**
+
+    - `m` (> 0), `c`, `k`, `alpha`, `beta`, `gamma`, `delta`, `nu` (> 0): scalars as in the equation.
+
+    ```python
+    bw = BoucWenOscillator()  # benchmark nominal parameters
+    y = bw.simulate(u, 1 / 750, hold="periodic")  # displacement at the sample times
+    ```
+    """
+
+    m: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    c: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    k: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    alpha: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    beta: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    gamma: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    delta: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    nu: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+
+    def __init__(self, m=2.0, c=10.0, k=5e4, alpha=5e4, beta=1e3, gamma=0.8, delta=-1.1, nu=1.0):
+        values = dict(m=m, c=c, k=k, alpha=alpha, beta=beta, gamma=gamma, delta=delta, nu=nu)
+        for name in _NAMES:
+            arr = check_scalar(values[name], name)
+            val = concrete_or_none(arr)
+            if val is not None and not np.isfinite(val):
+                raise PiezojaxValueError(f"`{name}` must be finite, got {float(val)}")
+            if val is not None and name in ("m", "nu") and not val > 0:
+                raise PiezojaxValueError(f"`{name}` must be positive, got {float(val)}")
+            setattr(self, name, arr)
+
+    def check(self) -> "BoucWenOscillator":
+        """Return `self` with `eqx.error_if` checks for traced parameters (m > 0, nu > 0, all finite)."""
+        leaves = jnp.stack([jnp.asarray(getattr(self, n)) for n in _NAMES])
+        bad = ~jnp.all(jnp.isfinite(leaves)) | ~(self.m > 0) | ~(self.nu > 0)
+        m = eqx.error_if(self.m, bad, "BoucWenOscillator: parameters must be finite with `m` > 0 and `nu` > 0")
+        return eqx.tree_at(lambda s: s.m, self, m)
+
+    def vector_field(self, t, state: Float[Array, "3"], u: Array) -> Float[Array, "3"]:
+        r"""Time derivative of the physical state $(y, \dot y, z)$ under the force `u`."""
+        y, v, z = state[0], state[1], state[2]
+        acc = (u - self.c * v - self.k * y - z) / self.m
+        az_nu = safe_abs_pow(z, self.nu)
+        # |z|^(nu - 1) z = sign(z) |z|^nu, written without a negative power of 0.
+        dz = self.alpha * v - self.beta * (self.gamma * jnp.abs(v) * jnp.sign(z) * az_nu + self.delta * v * az_nu)
+        return jnp.stack([v, acc, dz])
+
+    def simulate(
+        self,
+        u: SignalLike,
+        dt: ArrayLike,
+        *,
+        hold: str = "linear",
+        substeps: int = 4,
+        rtol: float | None = 1e-8,
+        num_samples: int | None = None,
+        state0: ArrayLike | None = None,
+        return_state: bool = False,
+    ) -> Signal:
+        r"""Simulate the displacement $y$ at the sample times $k\,dt$ from the force samples `u`.
+
+        **Arguments:**
+
+        - `u`: force samples (N), shape `(time,)`, at $t_k = k\,dt$.
+        - `dt`: sample period (s, > 0).
+        - `hold`: `"linear"` (default), `"zoh"`, or `"periodic"` (band-limited; `u` is one period).
+        - `rtol`: relative (and absolute) tolerance of the adaptive steps on the scaled states; `None`: fixed steps.
+        - `substeps`: fixed Tsit5 steps per sample when `rtol=None` (else the first step is `dt / substeps`).
+        - `num_samples`: number of output samples (default `len(u)`).
+        - `state0`: initial $(y, \dot y, z)$ at $t_0$ (default rest).
+        - `return_state`: also return the states, shape `(time, 3)`.
+
+        **Returns:** displacement, shape `(num_samples,)` (and the states if `return_state`).
+        """
+        u = check_samples(u, "u")
+        if u.ndim != 1:
+            raise PiezojaxValueError(f"`u` must be 1-D of shape (time,), got shape {tuple(u.shape)}")
+        dtype = common_float_dtype(u, dt, *[getattr(self, n) for n in _NAMES])
+        u = u.astype(dtype)
+        dt = check_step(dt, "dt", dtype)
+        model = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), self).check()
+        if state0 is None:
+            state0 = jnp.zeros(3, dtype)
+        else:
+            state0 = jnp.asarray(state0, dtype)
+            if state0.shape != (3,):
+                raise PiezojaxValueError(f"`state0` must have shape (3,), got {tuple(state0.shape)}")
+        # State scales: they only change what the adaptive controller calls small, not the solution.
+        f_scale = jax.lax.stop_gradient(jnp.max(jnp.abs(u))) + jnp.asarray(1e-30, dtype)
+        stiff = jax.lax.stop_gradient(jnp.abs(model.k) + jnp.abs(model.alpha)) + jnp.asarray(1e-30, dtype)
+        y_s = f_scale / stiff
+        scales = jnp.stack([y_s, y_s * jnp.sqrt(stiff / jax.lax.stop_gradient(model.m)), f_scale])
+
+        def vf(t, w, u_t, mod):
+            return mod.vector_field(t, w * scales, u_t) / scales
+
+        ws = simulate_ode(vf, state0 / scales, u, dt, model, hold=hold, substeps=substeps, rtol=rtol,
+                          num_samples=num_samples)
+        states = ws * scales
+        if return_state:
+            return states[:, 0], states
+        return states[:, 0]
