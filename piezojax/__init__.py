@@ -27,6 +27,14 @@ from ._linear.discretise import (
 from ._linear.stable import StableTransferFunction as StableTransferFunction
 from ._linear.state_space import StateSpace as StateSpace
 from ._linear.transfer_function import TransferFunction as TransferFunction
+from ._circuits.base import AbstractCircuit as AbstractCircuit
+from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCircuit
+from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegratorCircuit
+from ._circuits.smart_stack import SmartStackCircuit as SmartStackCircuit
+from ._observers.base import AbstractObserver as AbstractObserver, Estimate as Estimate
+from ._observers.dynamic_impedance import DynamicImpedanceObserver as DynamicImpedanceObserver
+from ._observers.current_integration import ForceDisplacementObserver as ForceDisplacementObserver
+from ._observers.sensor_layer import SensorLayerObserver as SensorLayerObserver
 from ._creep.linear import LinearCreep as LinearCreep
 from ._nonlinear._input import SampledInput as SampledInput, simulate_ode as simulate_ode
 from ._nonlinear.bouc_wen_oscillator import BoucWenOscillator as BoucWenOscillator
@@ -38,4 +46,8 @@ from ._hysteresis.initialise import pi_cold_start as pi_cold_start, pi_weights_l
 from ._hysteresis.play import PlayOperator as PlayOperator, StopOperator as StopOperator
 from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
 from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip
+from ._benches.common import Record as Record, step_command as step_command
+from ._benches.bafumba import BafumbaBench as BafumbaBench, unimorph_dynamics as unimorph_dynamics
+from ._benches.ivan import IvanBench as IvanBench, periodic_steps as periodic_steps
+from ._benches.chen import ChenBench as ChenBench
 from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans

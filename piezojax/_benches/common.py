@@ -1,0 +1,91 @@
+"""Shared pieces of the virtual benches: the record type, acquisition (noise, ADC) and drive signals."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from .._checks import PiezojaxValueError
+
+
+class Record(eqx.Module):
+    """One bench record: the channels a lab would store, plus the noise-free truth for checking estimators.
+
+    Channels are 1-D arrays on the uniform grid `t` [s]; a channel the bench does not have is `None`.
+
+    - `v_in` [V]: the measured drive voltage (monitor output of the amplifier, noisy, quantised).
+    - `v_out` [V]: the sensing-circuit output (transimpedance, integrator, or charge amplifier `V_s`).
+    - `displacement` [m], `force` [N]: the reference sensors (noisy, quantised).
+    - `true_v_in`, `true_displacement`, `true_force`: the same quantities without measurement errors.
+    """
+
+    t: Float[Array, " time"]
+    v_in: Float[Array, " time"]
+    v_out: Float[Array, " time"]
+    displacement: Float[Array, " time"]
+    force: Float[Array, " time"] | None
+    true_v_in: Float[Array, " time"]
+    true_displacement: Float[Array, " time"]
+    true_force: Float[Array, " time"] | None
+
+    @property
+    def dt(self) -> Array:
+        return self.t[1] - self.t[0]
+
+
+def adc(x: Array, bits: int, full_scale: float) -> Array:
+    r"""An ideal `bits`-bit converter on $[-$`full_scale`$, +$`full_scale`$]$: round to the LSB and clip."""
+    lsb = 2 * full_scale / 2**bits
+    return jnp.clip(jnp.round(x / lsb) * lsb, -full_scale, full_scale - lsb)
+
+
+def measure(x: Array, key: PRNGKeyArray, noise: float, bits: int, full_scale: float, gain: float = 1.0) -> Array:
+    """A measured channel: white Gaussian noise (std `noise`, in units of `x`), then an ADC seeing `gain * x`."""
+    noisy = x + noise * jax.random.normal(key, x.shape, x.dtype)
+    return adc(gain * noisy, bits, full_scale) / gain
+
+
+def lag(u: Array, dt: Array, tau: ArrayLike) -> Array:
+    r"""First-order lag $1/(1 + \tau s)$ from rest, exact for a held input: $y_{k} = a y_{k-1} + (1 - a) u_k$."""
+    a = jnp.exp(-dt / jnp.asarray(tau, u.dtype))
+
+    def step(y, uk):
+        y = a * y + (1 - a) * uk
+        return y, y
+
+    return jax.lax.scan(step, jnp.zeros((), u.dtype), u)[1]
+
+
+def step_command(levels: ArrayLike, hold: float, sample_rate: float, rest: float = 0.0) -> np.ndarray:
+    """A staircase drive: `rest` seconds at 0 V, then each of `levels` [V] held for `hold` seconds.
+
+    **Arguments:**
+
+    - `levels`: the voltage of each plateau, in order.
+    - `hold`: duration of each plateau [s]; `sample_rate` [Hz]; `rest`: leading time at 0 V [s].
+
+    **Returns:** a NumPy array of commanded voltage samples.
+
+    ```python
+    v = pj.step_command([100.0], hold=1000.0, sample_rate=1e3, rest=2.0)  # one 100 V step held 1000 s
+    ```
+    """
+    levels = np.asarray(levels, dtype=float)
+    if levels.ndim != 1 or levels.size == 0:
+        raise PiezojaxValueError(f"`levels` must be a non-empty 1-D list of voltages, got shape {levels.shape}")
+    if not (hold > 0 and sample_rate > 0 and rest >= 0):
+        raise PiezojaxValueError("`hold` and `sample_rate` must be > 0 and `rest` >= 0")
+    n_hold = int(round(hold * sample_rate))
+    n_rest = int(round(rest * sample_rate))
+    return np.concatenate([np.zeros(n_rest), np.repeat(levels, n_hold)])
+
+
+def replace_fields(module: eqx.Module, **changes) -> eqx.Module:
+    """A copy of `module` with some fields (static ones included) replaced, bypassing `__init__`."""
+    import dataclasses
+
+    new = object.__new__(type(module))
+    for field in dataclasses.fields(module):
+        object.__setattr__(new, field.name, changes.get(field.name, getattr(module, field.name)))
+    return new

@@ -1,0 +1,206 @@
+"""Virtual bench of paper 001: a PZT/Ni cantilever pushing on a force sensor, read by a charge integrator."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, PRNGKeyArray
+
+from .._circuits.base import apply_operator, running_integral
+from .._hysteresis.bouc_wen import BoucWen
+from .._observers.current_integration import ForceDisplacementObserver
+from .common import Record, lag, measure, replace_fields
+
+
+def periodic_steps(levels=(-10.0, -20.0), period: float = 4.0, slope: float = 100.0, cycles: int = 3,
+                   sample_rate: float = 1e3) -> np.ndarray:
+    """Paper 001's contact experiment drive: ramped steps from 0 V to each of `levels` and back, repeated.
+
+    Each half period holds the level, the other half 0 V; edges are ramps of `slope` [V/s].
+
+    **Returns:** a NumPy array of drive samples.
+
+    ```python
+    v = pj.periodic_steps((-10.0, -20.0), period=4.0, cycles=3)
+    ```
+    """
+    n = int(round(period * sample_rate))
+    t = np.arange(n) / sample_rate
+    out = []
+    for _ in range(cycles):
+        for level in levels:
+            up = np.minimum(t * slope, abs(level))
+            down = np.clip(abs(level) - (t - period / 2) * slope, 0, abs(level))
+            out.append(np.sign(level) * np.where(t < period / 2, up, down))
+    return np.concatenate(out)
+
+
+class LagCreep(eqx.Module):
+    r"""Creep as a sum of first-order lags, $\sum_i \frac{g_i}{1 + \tau_i s}$, exact for held samples, from rest.
+
+    Called as `creep(u, dt)`, like the creep blocks; used by the benches and as their true creep operator.
+    """
+
+    gains: Array
+    times: Array
+
+    def __call__(self, u: Array, dt: ArrayLike) -> Array:
+        u = jnp.asarray(u)
+        dt = jnp.asarray(dt, u.dtype)
+        return self.gains.astype(u.dtype) @ jax.vmap(lambda tau: lag(u, dt, tau))(self.times.astype(u.dtype))
+
+
+class ScaledOperator(eqx.Module):
+    """`gain * op(v)` for a signal-to-signal operator `op` (e.g. a hysteresis cell in volts turned into charge)."""
+
+    gain: Array
+    op: eqx.Module
+
+    def __call__(self, v: Array) -> Array:
+        return self.gain.astype(v.dtype) * apply_operator(self.op, v)
+
+
+class IvanBench(eqx.Module):
+    r"""Virtual bench of paper 001 (Ivan et al. 2009): gap, then contact with a force sensor of finite stiffness.
+
+    Truth:
+
+    - charge of the free actuator $Q_V = C_P\,\mathcal{B}[V] + Q_c$ with a Bouc–Wen hysteresis $\mathcal{B}$
+      (the observer assumes Prandtl–Ishlinskii) and a two-time-constant creep
+      $Q_c = C_P\sum_i \frac{c_i}{1 + \tau_i s}V$ (the observer assumes one LTI transfer function);
+    - free deflection proportional to that charge (ref. 1 of the paper): $\delta_{free} = Q_V/\alpha$, $\alpha < 0$
+      so that negative voltages move the tip towards the sensor ($\delta > 0$);
+    - a force sensor of stiffness $k_{fs}$ at gap $g$: $F = \frac{k_{fs}k}{k_{fs} + k}\max(0, \delta_{free} - g)$,
+      tip position $\delta = \delta_{free} - F/k$ with the beam stiffness $k$;
+    - piezo charge $Q_P = \beta F + Q_V$, read by `ChargeIntegratorCircuit`'s law with a drifting bias current.
+
+    Ground truth from the paper: $C_P$ = 1.74 nC/V, β = 1.03 nC/mN, blocking force 0.07 mN/V, which with our
+    beam stiffness $k$ = 163 N/m (3EI/L³ for 15 × 1 × 0.28 mm PZT/Ni) gives 0.43 µm/V of free deflection, hence
+    α = −C_P / 0.43 µm/V = −4.06e-3 C/m. Plausible choices: Bouc–Wen A = 0.1, β = γ = 0.01 /V (≈ 8 % hysteresis
+    over 20 V), creep 2 % and 3 % of $C_P$ with τ = 10 s and 100 s, $k_{fs}$ = 2000 N/m, $g$ = 1 µm
+    (≈ 1.1 mN peak at −20 V, as the paper's 1.15 mN), $C$ = 10 nF, $C_R$ = 1.5 nF, $R_{FP}$ = 100 GΩ,
+    $i_{bias}$ = 10 fA drifting 1 fA per 100 s, 1 kHz sampling, noise 0.2 mV on $V_{out}$, 2 µN on the force
+    sensor, 20 nm on the optical displacement sensor, 16-bit ±10 V converters.
+    """
+
+    capacitance_p: Array
+    hysteresis: BoucWen
+    creep_fractions: Array
+    creep_times: Array
+    alpha: Array
+    force_sensitivity: Array
+    beam_stiffness: Array
+    sensor_stiffness: Array
+    gap: Array
+    integrator_capacitance: Array
+    reference_capacitance: Array
+    leakage_resistance: Array
+    bias_current: Array
+    bias_drift: Array
+    v_out_noise: float = eqx.field(static=True)
+    force_noise: float = eqx.field(static=True)
+    displacement_noise: float = eqx.field(static=True)
+    adc_bits: int = eqx.field(static=True)
+    sample_rate: float = eqx.field(static=True)
+
+    def __init__(
+        self,
+        *,
+        capacitance_p: ArrayLike = 1.74e-9,
+        hysteresis: BoucWen | None = None,
+        creep_fractions: ArrayLike = (0.02, 0.03),
+        creep_times: ArrayLike = (10.0, 100.0),
+        blocking_force: float = 0.07e-3,
+        force_sensitivity: ArrayLike = 1.03e-6,
+        beam_stiffness: float = 163.0,
+        sensor_stiffness: ArrayLike = 2000.0,
+        gap: ArrayLike = 1e-6,
+        integrator_capacitance: ArrayLike = 10e-9,
+        reference_capacitance: ArrayLike = 1.5e-9,
+        leakage_resistance: ArrayLike = 1e11,
+        bias_current: ArrayLike = 10e-15,
+        bias_drift: ArrayLike = 1e-17,
+        v_out_noise: float = 0.2e-3,
+        force_noise: float = 2e-6,
+        displacement_noise: float = 20e-9,
+        adc_bits: int = 16,
+        sample_rate: float = 1e3,
+    ):
+        f = lambda x: jnp.asarray(x, dtype=jnp.zeros(()).dtype)  # noqa: E731
+        self.capacitance_p = f(capacitance_p)
+        self.hysteresis = BoucWen(0.1, 0.01, 0.01, d=1.0) if hysteresis is None else hysteresis
+        self.creep_fractions, self.creep_times = f(creep_fractions), f(creep_times)
+        self.alpha = f(-capacitance_p / (blocking_force / beam_stiffness))
+        self.force_sensitivity, self.beam_stiffness = f(force_sensitivity), f(beam_stiffness)
+        self.sensor_stiffness, self.gap = f(sensor_stiffness), f(gap)
+        self.integrator_capacitance, self.reference_capacitance = f(integrator_capacitance), f(reference_capacitance)
+        self.leakage_resistance, self.bias_current, self.bias_drift = (
+            f(leakage_resistance), f(bias_current), f(bias_drift))
+        self.v_out_noise, self.force_noise, self.displacement_noise = v_out_noise, force_noise, displacement_noise
+        self.adc_bits, self.sample_rate = adc_bits, sample_rate
+
+    def ideal(self) -> "IvanBench":
+        """The same bench without noise, quantisation or bias drift."""
+        b = eqx.tree_at(lambda b: b.bias_drift, self, self.bias_drift * 0)
+        return replace_fields(b, adc_bits=0, v_out_noise=0.0, force_noise=0.0, displacement_noise=0.0)
+
+    def identified_stiffness(self) -> Array:
+        r"""$k_Z$ as the paper identifies it (force step at $V_{in} = 0$): $1/k_Z = 1/k + \beta/\alpha$."""
+        return 1 / (1 / self.beam_stiffness + self.force_sensitivity / self.alpha)
+
+    def observer(self, hysteresis=None, creep=None, filter_cutoff=None) -> ForceDisplacementObserver:
+        """The paper-001 observer with the bench's circuit constants, α, β and $k_Z$; `hysteresis`/`creep` are the
+        identified charge operators (default: the linear $C_P$ and no creep)."""
+        return ForceDisplacementObserver(
+            self.integrator_capacitance, self.reference_capacitance, self.leakage_resistance, self.bias_current,
+            self.force_sensitivity, self.alpha, self.identified_stiffness(), capacitance_p=self.capacitance_p,
+            hysteresis=hysteresis, creep=creep, filter_cutoff=filter_cutoff)
+
+    def true_charge_operators(self) -> tuple[ScaledOperator, LagCreep]:
+        """The bench's own charge operators `(hysteresis, creep)` in the observer's form: with them the observer's
+        model is exact (only noise, quantisation and bias drift remain)."""
+        return (ScaledOperator(self.capacitance_p, self.hysteresis),
+                LagCreep(self.capacitance_p * self.creep_fractions, self.creep_times))
+
+    def free_charge(self, v: Array, dt: Array) -> Array:
+        """$Q_V$ [C]: hysteretic charge plus creep charge of the free actuator."""
+        hysteresis, creep = self.true_charge_operators()
+        return hysteresis(v) + creep(v, dt)
+
+    def record(self, v_in: ArrayLike, key: PRNGKeyArray) -> Record:
+        """Simulate one record for the drive samples `v_in` [V] (from rest), seeded by `key`.
+
+        Works under `eqx.filter_jit` and `jax.vmap` (over commands and keys). Gradients with respect to the
+        bench's parameters exist for the `true_*` channels; the quantised channels have zero gradient.
+
+        **Returns:** a `Record` with `v_in`, `v_out` (integrator), `displacement` and `force` (reference sensors).
+        """
+        dtype = self.capacitance_p.dtype
+        v = jnp.asarray(v_in, dtype)
+        if v.ndim != 1 or v.shape[0] < 2:
+            raise ValueError(f"`v_in` must be 1-D with at least 2 samples, got shape {v.shape}")
+        dt = jnp.asarray(1.0 / self.sample_rate, dtype)
+        t = jnp.arange(v.shape[0], dtype=dtype) * dt
+        q_v = self.free_charge(v, dt)
+        d_free = q_v / self.alpha
+        k, ks = self.beam_stiffness, self.sensor_stiffness
+        force = ks * k / (ks + k) * jnp.maximum(d_free - self.gap, 0)
+        delta = d_free - force / k
+        q = self.force_sensitivity * force + q_v
+        i_bias = self.bias_current + self.bias_drift * t
+        leak = running_integral(v / self.leakage_resistance + i_bias, dt)
+        v_out = -(q - self.reference_capacitance * v + leak) / self.integrator_capacitance
+        k1, k2, k3 = jax.random.split(key, 3)
+        bits = self.adc_bits
+        quant = (lambda x, kk, s, g: measure(x, kk, s, bits, 10.0, g)) if bits else (
+            lambda x, kk, s, g: x + s * jax.random.normal(kk, x.shape, x.dtype))
+        return Record(
+            t=t,
+            v_in=v if not bits else measure(v, k1, 0.0, bits, 10.0, 1 / 5),
+            v_out=quant(v_out, k1, self.v_out_noise, 1.0),
+            displacement=quant(delta, k2, self.displacement_noise, 5e5),
+            force=quant(force, k3, self.force_noise, 5e3),
+            true_v_in=v,
+            true_displacement=delta,
+            true_force=force,
+        )

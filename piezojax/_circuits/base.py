@@ -1,0 +1,149 @@
+r"""Shared pieces of the self-sensing circuit models: the circuit interface, input checks and the sampling convention.
+
+Sampling convention (used by every circuit and observer so that an observer inverts its circuit exactly):
+
+- a sampled charge $Q_k = Q(t_k)$ is a point value;
+- a sampled current or circuit output $I_k$ is the *mean* over the sample interval $(t_{k-1}, t_k]$, which is what an
+  integrating ADC or a well anti-aliased acquisition records, so $I_k = (Q_k - Q_{k-1})/dt$ exactly;
+- every record starts from rest: before the first sample the input voltage, the charge and all internal states are 0,
+  so $Q_{-1} = 0$;
+- a running integral $\int_0^{t_k} x\,dt$ of a sampled signal is the rectangle sum $dt \sum_{j \le k} x_j$, which is
+  exact for interval means and is what a real-time (dSPACE) implementation computes.
+"""
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+from .._checks import PiezojaxValueError, check_signal, concrete_or_none
+from .._hysteresis.base import cast_module, module_float_dtype
+from .._linear.discretise import check_dt
+
+
+def _float_array(x: ArrayLike, name: str) -> Array:
+    # Python scalars become strongly typed default-float arrays: weak-typed leaves would retrace `jit` when a
+    # fitter swaps in a strongly typed value.
+    try:
+        arr = jnp.asarray(x)
+    except (TypeError, ValueError) as e:
+        raise PiezojaxValueError(f"`{name}` must be a float scalar, got {type(x).__name__}") from e
+    if not jnp.issubdtype(arr.dtype, jnp.inexact) or getattr(arr, "weak_type", False):
+        dtype = arr.dtype if jnp.issubdtype(arr.dtype, jnp.inexact) else jnp.zeros(()).dtype
+        arr = jnp.array(arr, dtype=dtype, copy=True)
+        arr = jax.lax.convert_element_type(arr, dtype) if getattr(arr, "weak_type", False) else arr
+    return arr
+
+
+def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False) -> Array:
+    """Constructor check of a scalar parameter: a float array; `ValueError` naming `name` if concrete and not > 0."""
+    x = _float_array(x, name)
+    if x.ndim != 0:
+        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
+    value = concrete_or_none(x)
+    if value is not None:
+        ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+        if not ok:
+            bound = "≥ 0" if allow_zero else "> 0"
+            raise PiezojaxValueError(f"`{name}` must be finite and {bound}, got {value}")
+    return x
+
+
+def check_scalar_param(x: ArrayLike, name: str) -> Array:
+    """Constructor check of a signed scalar parameter (finite if concrete)."""
+    x = _float_array(x, name)
+    if x.ndim != 0:
+        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
+    value = concrete_or_none(x)
+    if value is not None and not np.isfinite(value):
+        raise PiezojaxValueError(f"`{name}` must be finite, got {value}")
+    return x
+
+
+def error_if_not_positive(module: eqx.Module, names: tuple[str, ...], allow_zero: tuple[str, ...] = ()) -> eqx.Module:
+    """Attach `eqx.error_if` checks (> 0, finite) on the named scalar fields; returns the checked module."""
+    for name in names:
+        x = getattr(module, name)
+        bad = ~jnp.isfinite(x) | ((x < 0) if name in allow_zero else (x <= 0))
+        bound = "≥ 0" if name in allow_zero else "> 0"
+        x = eqx.error_if(x, bad, f"`{name}` must be finite and {bound}")
+        module = eqx.tree_at(lambda m, n=name: getattr(m, n), module, x)
+    return module
+
+
+def error_if_not_finite(module: eqx.Module, names: tuple[str, ...]) -> eqx.Module:
+    for name in names:
+        x = getattr(module, name)
+        x = eqx.error_if(x, ~jnp.isfinite(x), f"`{name}` must be finite")
+        module = eqx.tree_at(lambda m, n=name: getattr(m, n), module, x)
+    return module
+
+
+def prepare(module: eqx.Module, dt: ArrayLike, **signals: ArrayLike):
+    """Validate and cast signals, `dt` and `module` to one float dtype; check that all signals have one length.
+
+    Returns `(module, dt, signals)` with `module.check()` applied and `signals` a dict of 1-D arrays.
+    """
+    present = {k: v for k, v in signals.items() if v is not None}
+    dtype = module_float_dtype(module, dt, *present.values())
+    out = {}
+    for name, x in present.items():
+        out[name] = check_signal(x, name, dtype)
+    lengths = {name: x.shape[0] for name, x in out.items()}
+    if len(set(lengths.values())) > 1:
+        desc = ", ".join(f"`{n}` has {m}" for n, m in lengths.items())
+        raise PiezojaxValueError(f"channel lengths differ ({desc} samples); all channels must share one time grid")
+    dt = check_dt(dt, dtype)
+    module = cast_module(module, dtype).check()
+    for name in signals:
+        out.setdefault(name, None)
+    return module, dt, out
+
+
+def running_integral(x: Array, dt: Array) -> Array:
+    r"""$\int_0^{t_k} x\,dt = dt \sum_{j \le k} x_j$ for interval-mean samples `x` (see the module docstring)."""
+    return dt * jnp.cumsum(x)
+
+
+def interval_current(q: Array, dt: Array) -> Array:
+    r"""Mean current over each sample interval from point charges, from rest: $I_k = (Q_k - Q_{k-1})/dt$, $Q_{-1}=0$."""
+    return jnp.diff(q, prepend=jnp.zeros((1,), q.dtype)) / dt
+
+
+class AbstractCircuit(eqx.Module):
+    r"""A self-sensing circuit: a forward model from the drive voltage (and mechanical inputs) to the recorded output.
+
+    Concrete circuits define `__call__(v_in, dt, ...) -> v_out` (the recorded output voltage) and `charge(...)` or
+    the intermediate physical quantity their paper uses. Every parameter is an array leaf, so `jax.jacfwd` of the
+    output with respect to the whole module gives the sensitivities a fitter needs. `check()` attaches the
+    data-dependent parameter checks (`eqx.error_if`).
+
+    Every circuit works under `jax.jit` (`eqx.filter_jit`), `jax.vmap`, `jax.grad` and `jax.jacfwd`. Running
+    integrals over long records need float64 (enable x64) to keep the charge accurate.
+    """
+
+    def check(self) -> "AbstractCircuit":
+        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        return self
+
+    @abc.abstractmethod
+    def __call__(self, v_in: ArrayLike, dt: ArrayLike, *args, **kwargs) -> Array:
+        """The recorded output voltage for the drive `v_in` sampled with step `dt`."""
+
+
+def apply_operator(op: eqx.Module, v: Array) -> Array:
+    """Apply a signal-to-signal block (e.g. a hysteresis cell) to an already validated 1-D signal `v`.
+
+    Hysteresis cells are scanned here with a closure over the module rather than through
+    `AbstractHysteresis.scan`, which passes the bound method `op.step` to `lax.scan`; with jax 0.10.2 and
+    equinox 0.13.8 that hashes the module and fails on its array fields.
+    """
+    from .._hysteresis.base import AbstractHysteresis
+
+    if isinstance(op, AbstractHysteresis):
+        op = cast_module(op, v.dtype).check()
+        return jax.lax.scan(lambda s, x: op.step(s, x), op.init(), v)[1]
+    return op(v)

@@ -1,0 +1,36 @@
+"""The observer interface: electrical signals of a self-sensing circuit in, displacement (and force) estimates out."""
+
+import abc
+
+import equinox as eqx
+from jaxtyping import Array, ArrayLike, Float
+
+
+class Estimate(eqx.Module):
+    """What an observer returns: the estimated `displacement` [m] and, where the paper has it, `force` [N].
+
+    Both are 1-D signals on the input time grid; `force` is `None` for observers without a force estimate.
+    """
+
+    displacement: Float[Array, " time"]
+    force: Float[Array, " time"] | None = None
+
+
+class AbstractObserver(eqx.Module):
+    r"""A self-sensing observer: a pure function of its parameters from (drive, circuit output) to estimates.
+
+    Concrete observers define `__call__(v_in, v_out, dt) -> Estimate`. Every parameter is an array leaf, so an
+    observer can be calibrated end-to-end (`jax.jacfwd` with respect to the module). `check()` attaches the
+    data-dependent parameter checks (`eqx.error_if`).
+
+    Every observer works under `jax.jit` (`eqx.filter_jit`), `jax.vmap`, `jax.grad` and `jax.jacfwd`; use float64
+    for long records (the charge is a running integral of the circuit output).
+    """
+
+    def check(self) -> "AbstractObserver":
+        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        return self
+
+    @abc.abstractmethod
+    def __call__(self, v_in: ArrayLike, v_out: ArrayLike, dt: ArrayLike) -> Estimate:
+        """Estimate displacement (and force) from the drive `v_in` and circuit output `v_out`, step `dt`."""

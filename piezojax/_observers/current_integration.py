@@ -1,0 +1,138 @@
+"""Paper 001 (Ivan et al. 2009): force and displacement self-sensing by current integration."""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .._circuits.base import (
+    apply_operator,
+    check_positive_param,
+    check_scalar_param,
+    error_if_not_finite,
+    error_if_not_positive,
+    prepare,
+    running_integral,
+)
+from .._custom_types import Signal, SignalLike
+from .._linear.transfer_function import TransferFunction
+from .base import AbstractObserver, Estimate
+
+
+def butterworth3(cutoff: Array) -> TransferFunction:
+    r"""Analog 3rd-order Butterworth low-pass, cutoff `cutoff` in Hz: $\omega^3/(s^3 + 2\omega s^2 + 2\omega^2 s +
+    \omega^3)$, $\omega = 2\pi f_c$ (equals `scipy.signal.butter(3, ω, analog=True)`)."""
+    w = 2 * jnp.pi * cutoff
+    one = jnp.ones((), w.dtype)
+    return TransferFunction(jnp.stack([w**3]), jnp.stack([one, 2 * w, 2 * w**2, w**3]))
+
+
+class ForceDisplacementObserver(AbstractObserver):
+    r"""Force and displacement observer of paper 001 (eq. 4–6), the inverse of `ChargeIntegratorCircuit`.
+
+    The compensated charge (bias, leakage and reference-capacitor terms removed) is
+    $Q = -C V_{out} + C_R V_{in} - \int_0^t \left(\frac{V_{in}}{R_{FP}} + i_{bias}\right)dt$, and
+
+    - force (eq. 4): $F_{est} = \frac{1}{\beta}\left(Q - \mathcal{F}_H[V_{in}] - \mathcal{F}_C[V_{in}]\right)$,
+      with the hysteresis operator $\mathcal{F}_H$ (PI, eq. 7–8) and creep $\mathcal{F}_C$ (eq. 9) in charge units
+      (the paper identifies them on $V^*_{out} = -Q/C$, i.e. with weights scaled by $-1/C$);
+    - free displacement (eq. 5): $\delta_{free} = Q/\alpha$;
+    - displacement (eq. 6): $\hat\delta = \delta_{free} - B(s)[F_{est}]/k_Z$, $B$ the 3rd-order Butterworth
+      low-pass the paper puts on the force term (`filter_cutoff=None` for none).
+
+    $k_Z$ is the stiffness identified the paper's way (an external force step at $V_{in} = 0$); for a beam of
+    stiffness $k$ this is $1/k_Z = 1/k + \beta/\alpha$, which makes eq. (6) exact (see `IvanBench`).
+
+    **Arguments:**
+
+    - `integrator_capacitance` $C$, `reference_capacitance` $C_R$ [F] > 0; `leakage_resistance` $R_{FP}$ [Ω] > 0;
+      `bias_current` $i_{bias}$ [A].
+    - `force_sensitivity` $\beta$ [C/N] > 0; `displacement_coefficient` $\alpha$ [C/m] (≠ 0, signed);
+      `stiffness` $k_Z$ [N/m] > 0.
+    - `capacitance_p` [F]: the linear $C_P$ used when `hysteresis` is `None` (then eq. 4 reduces to eq. 3).
+    - `hysteresis`: $\mathcal{F}_H$ (a module mapping a signal to a signal, in C), or `None`.
+    - `creep`: $\mathcal{F}_C$ (called as `creep(v_in, dt)`), or `None`.
+    - `filter_cutoff`: Butterworth cutoff [Hz], or `None`.
+
+    ```python
+    obs = pj.ForceDisplacementObserver(100e-9, 1.74e-9, 1e12, 0.0, 1.03e-6, -4e-3, 150.0,
+                                       hysteresis=pi_charge, filter_cutoff=10.0)
+    est = obs(v_in, v_out, 1e-3)         # est.force [N], est.displacement [m]
+    ```
+    """
+
+    integrator_capacitance: Float[Array, ""]
+    reference_capacitance: Float[Array, ""]
+    leakage_resistance: Float[Array, ""]
+    bias_current: Float[Array, ""]
+    force_sensitivity: Float[Array, ""]
+    displacement_coefficient: Float[Array, ""]
+    stiffness: Float[Array, ""]
+    capacitance_p: Float[Array, ""]
+    hysteresis: eqx.Module | None
+    creep: eqx.Module | None
+    filter_cutoff: Float[Array, ""] | None
+
+    def __init__(
+        self,
+        integrator_capacitance: ArrayLike,
+        reference_capacitance: ArrayLike,
+        leakage_resistance: ArrayLike,
+        bias_current: ArrayLike,
+        force_sensitivity: ArrayLike,
+        displacement_coefficient: ArrayLike,
+        stiffness: ArrayLike,
+        capacitance_p: ArrayLike = 0.0,
+        hysteresis: eqx.Module | None = None,
+        creep: eqx.Module | None = None,
+        filter_cutoff: ArrayLike | None = None,
+    ):
+        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance")
+        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance")
+        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance")
+        self.bias_current = check_scalar_param(bias_current, "bias_current")
+        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity")
+        self.displacement_coefficient = check_scalar_param(displacement_coefficient, "displacement_coefficient")
+        self.stiffness = check_positive_param(stiffness, "stiffness")
+        self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True)
+        self.hysteresis = hysteresis
+        self.creep = creep
+        self.filter_cutoff = None if filter_cutoff is None else check_positive_param(filter_cutoff, "filter_cutoff")
+
+    def check(self) -> "ForceDisplacementObserver":
+        names = ("integrator_capacitance", "reference_capacitance", "leakage_resistance", "force_sensitivity",
+                 "stiffness", "capacitance_p") + (("filter_cutoff",) if self.filter_cutoff is not None else ())
+        m = error_if_not_positive(self, names, allow_zero=("capacitance_p",))
+        m = error_if_not_finite(m, ("bias_current",))
+        a = eqx.error_if(m.displacement_coefficient, ~jnp.isfinite(m.displacement_coefficient)
+                         | (m.displacement_coefficient == 0), "`displacement_coefficient` must be finite and nonzero")
+        return eqx.tree_at(lambda o: o.displacement_coefficient, m, a)
+
+    def _compensated_charge(self, v: Array, v_out: Array, dt: Array) -> Array:
+        leak = running_integral(v / self.leakage_resistance + self.bias_current, dt)
+        return -self.integrator_capacitance * v_out + self.reference_capacitance * v - leak
+
+    def compensated_charge(self, v_in: SignalLike, v_out: SignalLike, dt: ArrayLike) -> Signal:
+        """The piezo charge recovered from the integrator output, with bias, leakage and $C_R$ terms removed [C]."""
+        m, dt, s = prepare(self, dt, v_in=v_in, v_out=v_out)
+        return m._compensated_charge(s["v_in"], s["v_out"], dt)
+
+    def __call__(self, v_in: SignalLike, v_out: SignalLike, dt: ArrayLike) -> Estimate:
+        r"""Force (eq. 4) and displacement (eq. 6) estimates.
+
+        **Arguments:**
+
+        - `v_in`: drive voltage [V], shape `(time,)`; `v_out`: integrator output [V], same length.
+        - `dt`: sample step [s].
+
+        **Returns:** an `Estimate` with `force` $F_{est}$ [N] and `displacement` $\hat\delta$ [m].
+        """
+        m, dt, s = prepare(self, dt, v_in=v_in, v_out=v_out)
+        v = s["v_in"]
+        q = m._compensated_charge(v, s["v_out"], dt)
+        q_v = m.capacitance_p * v if m.hysteresis is None else apply_operator(m.hysteresis, v)
+        if m.creep is not None:
+            q_v = q_v + m.creep(v, dt)
+        force = (q - q_v) / m.force_sensitivity
+        force_term = force if m.filter_cutoff is None else butterworth3(m.filter_cutoff).simulate(force, dt)
+        displacement = q / m.displacement_coefficient - force_term / m.stiffness
+        return Estimate(displacement=displacement, force=force)
