@@ -1,22 +1,45 @@
 """piezojax: differentiable models of piezoelectric actuators and their self-sensing electronics."""
 
-from ._checks import PiezojaxValueError as PiezojaxValueError
-from ._hysteresis.base import AbstractHysteresis as AbstractHysteresis
-
-__version__ = "0.1.0"
-from ._parametrisation import (
-    AbstractReparam as AbstractReparam,
-    Bounded as Bounded,
-    OrderedPositive as OrderedPositive,
-    Positive as Positive,
-    constrain as constrain,
-    inv_softplus as inv_softplus,
-    softplus as softplus,
-    unwrap as unwrap,
+from ._actuator import (
+    Actuator as Actuator,
+    ActuatorOutput as ActuatorOutput,
 )
+from ._benches.bafumba import (
+    BafumbaBench as BafumbaBench,
+    unimorph_dynamics as unimorph_dynamics,
+)
+from ._benches.chen import ChenBench as ChenBench
+from ._benches.common import (
+    Record as Record,
+    step_command as step_command,
+)
+from ._benches.ivan import (
+    IvanBench as IvanBench,
+    periodic_steps as periodic_steps,
+)
+from ._checks import PiezojaxValueError as PiezojaxValueError
+from ._circuits.base import AbstractCircuit as AbstractCircuit
+from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegratorCircuit
+from ._circuits.smart_stack import SmartStackCircuit as SmartStackCircuit
+from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCircuit
+from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans
 from ._creep.base import AbstractCreep as AbstractCreep
 from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
+from ._creep.linear import LinearCreep as LinearCreep
 from ._creep.logarithmic import LogarithmicCreep as LogarithmicCreep
+from ._hysteresis.base import AbstractHysteresis as AbstractHysteresis
+from ._hysteresis.bouc_wen import BoucWen as BoucWen
+from ._hysteresis.initialise import (
+    pi_cold_start as pi_cold_start,
+    pi_weights_least_squares as pi_weights_least_squares,
+)
+from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip
+from ._hysteresis.play import (
+    PlayOperator as PlayOperator,
+    StopOperator as StopOperator,
+)
+from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
+from ._hysteresis.preisach import Preisach as Preisach
 from ._linear.base import AbstractLinearSystem as AbstractLinearSystem
 from ._linear.butterworth import butterworth as butterworth
 from ._linear.discretise import (
@@ -27,27 +50,28 @@ from ._linear.discretise import (
 from ._linear.stable import StableTransferFunction as StableTransferFunction
 from ._linear.state_space import StateSpace as StateSpace
 from ._linear.transfer_function import TransferFunction as TransferFunction
-from ._circuits.base import AbstractCircuit as AbstractCircuit
-from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCircuit
-from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegratorCircuit
-from ._circuits.smart_stack import SmartStackCircuit as SmartStackCircuit
-from ._observers.base import AbstractObserver as AbstractObserver, Estimate as Estimate
-from ._observers.dynamic_impedance import DynamicImpedanceObserver as DynamicImpedanceObserver
-from ._observers.current_integration import ForceDisplacementObserver as ForceDisplacementObserver
-from ._observers.sensor_layer import SensorLayerObserver as SensorLayerObserver
-from ._creep.linear import LinearCreep as LinearCreep
-from ._nonlinear._input import SampledInput as SampledInput, simulate_ode as simulate_ode
+from ._nonlinear._input import (
+    SampledInput as SampledInput,
+    simulate_ode as simulate_ode,
+)
 from ._nonlinear.bouc_wen_oscillator import BoucWenOscillator as BoucWenOscillator
 from ._nonlinear.electromechanical import ElectromechanicalActuator as ElectromechanicalActuator
-from ._actuator import Actuator as Actuator, ActuatorOutput as ActuatorOutput
-from ._hysteresis.bouc_wen import BoucWen as BoucWen
-from ._hysteresis.preisach import Preisach as Preisach
-from ._hysteresis.initialise import pi_cold_start as pi_cold_start, pi_weights_least_squares as pi_weights_least_squares
-from ._hysteresis.play import PlayOperator as PlayOperator, StopOperator as StopOperator
-from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
-from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip
-from ._benches.common import Record as Record, step_command as step_command
-from ._benches.bafumba import BafumbaBench as BafumbaBench, unimorph_dynamics as unimorph_dynamics
-from ._benches.ivan import IvanBench as IvanBench, periodic_steps as periodic_steps
-from ._benches.chen import ChenBench as ChenBench
-from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans
+from ._observers.base import (
+    AbstractObserver as AbstractObserver,
+    Estimate as Estimate,
+)
+from ._observers.current_integration import ForceDisplacementObserver as ForceDisplacementObserver
+from ._observers.dynamic_impedance import DynamicImpedanceObserver as DynamicImpedanceObserver
+from ._observers.sensor_layer import SensorLayerObserver as SensorLayerObserver
+from ._parametrisation import (
+    AbstractReparam as AbstractReparam,
+    Bounded as Bounded,
+    OrderedPositive as OrderedPositive,
+    Positive as Positive,
+    constrain as constrain,
+    inv_softplus as inv_softplus,
+    softplus as softplus,
+    unwrap as unwrap,
+)
+
+__version__ = "0.1.0"

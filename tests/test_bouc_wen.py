@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.optimize
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 import piezojax as pj
 from piezojax._hysteresis.bouc_wen import BoucWen

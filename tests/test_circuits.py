@@ -6,14 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.signal
-
-import piezojax as pj
-from piezojax._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii
-
-from piezojax._circuits.base import apply_operator
-
 from _selfsensing_helpers import jacfwd_vs_central_fd
 
+import piezojax as pj
+from piezojax._circuits.base import apply_operator
+from piezojax._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii
 
 
 @eqx.filter_jit

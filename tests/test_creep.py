@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 import scipy.signal
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 from jax.flatten_util import ravel_pytree
 
 import piezojax as pj

@@ -31,7 +31,8 @@ class Record(eqx.Module):
 
     @property
     def dt(self) -> Array:
-        return self.t[1] - self.t[0]
+        """The sample step (also for a batch of records stacked along a leading axis)."""
+        return self.t[..., 1] - self.t[..., 0]
 
 
 def adc(x: Array, bits: int, full_scale: float) -> Array:

@@ -1,7 +1,6 @@
 """Paper 001 (Ivan et al. 2009): the piezo charge read by an integrator with a reference capacitor."""
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import Signal, SignalLike

@@ -1,7 +1,6 @@
 """Paper 000 (Bafumba Liseli et al. 2018): the piezo current read by a transimpedance amplifier."""
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import Signal, SignalLike

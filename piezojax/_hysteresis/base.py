@@ -67,6 +67,11 @@ class AbstractHysteresis(eqx.Module):
 
         **Returns:** `(final_state, y)` with `y` of shape `(time,)`.
         """
+        op, signal, state = self._prepare(signal, state)
+        return op._run(state, signal)
+
+    def _prepare(self, signal: SignalLike, state: PyTree[Array] | None):
+        """Validate `signal`, cast the operator, signal and state to their common float dtype, attach `check()`."""
         dtype = module_float_dtype(self, signal)
         signal = check_signal(signal, "signal", dtype)
         op = cast_module(self, dtype).check()
@@ -74,9 +79,13 @@ class AbstractHysteresis(eqx.Module):
             state = op.init()
         else:
             state = jtu.tree_map(lambda s: jnp.asarray(s, dtype), state)
+        return op, signal, state
+
+    def _run(self, state: PyTree[Array], signal: Signal) -> tuple[PyTree[Array], Signal]:
+        """Scan the cell over a prepared signal. Operators override this to pick a faster loop outside the scan."""
         # A plain closure, not the bound method: jax hashes the scan body, and a bound method of a Module hashes
         # its (unhashable) array fields.
-        return jax.lax.scan(lambda carry, v: op.step(carry, v), state, signal, unroll=op._unroll())
+        return jax.lax.scan(lambda carry, v: self.step(carry, v), state, signal, unroll=self._unroll())
 
     def __call__(self, signal: SignalLike, state: PyTree[Array] | None = None) -> Signal:
         """Apply the operator to a 1-D `signal` (see `scan`) and return the output signal."""

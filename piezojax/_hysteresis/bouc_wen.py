@@ -8,9 +8,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_scalar, check_signal, concrete_or_none
+from .._checks import PiezojaxValueError, check_scalar, concrete_or_none
 from .._custom_types import ScalarLike, Signal, SignalLike
-from .base import AbstractHysteresis, cast_module, module_float_dtype
+from .base import AbstractHysteresis
 from .play import param_dtype
 
 _OUTPUTS = ("dv-z", "dv+z", "z")
@@ -311,9 +311,8 @@ class BoucWen(AbstractHysteresis):
         m = self.substeps
         if self.method != "rk4" or m == 1:
             return super().scan(signal, state)
-        dtype = module_float_dtype(self, signal)
-        signal = check_signal(signal, "signal", dtype)
-        state = cast_module(self, dtype).init() if state is None else jnp.asarray(state, dtype)
+        _, signal, state = self._prepare(signal, state)
+        dtype = signal.dtype
         if state.shape != (2,):
             raise PiezojaxValueError(
                 f"`state` must have shape (2,) ([v_prev, z]), got {state.shape}"

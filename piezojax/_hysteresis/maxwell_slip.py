@@ -8,7 +8,7 @@ from jaxtyping import Array, Float
 from .._checks import PiezojaxValueError, check_vector, concrete_or_none
 from .._custom_types import ScalarLike, VectorLike
 from .base import AbstractHysteresis
-from .play import check_smoothing, error_if_bad_smoothing, param_dtype, scan_exact_or_smooth, stop_update
+from .play import check_smoothing, error_if_bad_smoothing, param_dtype, run_exact_or_smooth, stop_update
 
 
 class MaxwellSlip(AbstractHysteresis):
@@ -115,10 +115,9 @@ class MaxwellSlip(AbstractHysteresis):
     def step(self, state, x):
         return self._step(state, x, None)
 
-    def scan(self, signal, state=None):
-        """As `AbstractHysteresis.scan`; the exact or smooth loop is chosen outside the scan (see
-        `scan_exact_or_smooth`), with the same numbers as scanning `step`."""
-        return scan_exact_or_smooth(self, signal, state)
+    def _run(self, state, signal):
+        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
+        return run_exact_or_smooth(self, state, signal)
 
     def _step(self, state, x, exact):
         x_prev, z = state

@@ -20,13 +20,12 @@ operator and equals it at $s = 0$ (and for $r = 0$ at any $s$).
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, as_float_array, check_signal, concrete_or_none
+from .._checks import PiezojaxValueError, as_float_array, concrete_or_none
 from .._custom_types import ScalarLike
-from .base import AbstractHysteresis, cast_module, module_float_dtype
+from .base import AbstractHysteresis
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Pure step functions (also used by other operators, e.g. the smooth Preisach form).
@@ -179,8 +178,8 @@ def stop_update(z: Array, delta: Array, r: Array, smoothing: Array, exact: bool 
     return play_step(z, delta, r, smoothing)
 
 
-def scan_exact_or_smooth(op: AbstractHysteresis, signal, state):
-    """`AbstractHysteresis.scan` for operators with a `smoothing` field and a `_step(state, v, exact)` method.
+def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
+    """`AbstractHysteresis._run` for operators with a `smoothing` field and a `_step(state, v, exact)` method.
 
     XLA:CPU compiles a scan whose body touches little memory (about 1 KiB) into one fused loop, and runs bigger bodies
     op by op, at a few hundred ns per op per sample: the smooth step falls in the second class, the exact one in the
@@ -190,13 +189,6 @@ def scan_exact_or_smooth(op: AbstractHysteresis, signal, state):
     operator) and 63-133 ns/sample (traced operator, `lax.cond`), against 600-900 ns/sample for the general step
     in the loop and 850-1000 ns/sample for the smooth operator.
     """
-    dtype = module_float_dtype(op, signal)
-    signal = check_signal(signal, "signal", dtype)
-    op = cast_module(op, dtype).check()
-    if state is None:
-        state = op.init()
-    else:
-        state = jtu.tree_map(lambda x: jnp.asarray(x, dtype), state)
 
     def run(exact: bool):
         return jax.lax.scan(lambda c, v: op._step(c, v, exact), state, signal, unroll=op._unroll())
@@ -312,10 +304,9 @@ class PlayOperator(AbstractHysteresis):
     def step(self, state, v):
         return self._step(state, v, None)
 
-    def scan(self, signal, state=None):
-        """As `AbstractHysteresis.scan`; the exact or smooth loop is chosen outside the scan (see
-        `scan_exact_or_smooth`), with the same numbers as scanning `step`."""
-        return scan_exact_or_smooth(self, signal, state)
+    def _run(self, state, signal):
+        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
+        return run_exact_or_smooth(self, state, signal)
 
     def _step(self, state, v, exact):
         v_prev, z = state
@@ -368,10 +359,9 @@ class StopOperator(AbstractHysteresis):
     def step(self, state, v):
         return self._step(state, v, None)
 
-    def scan(self, signal, state=None):
-        """As `AbstractHysteresis.scan`; the exact or smooth loop is chosen outside the scan (see
-        `scan_exact_or_smooth`), with the same numbers as scanning `step`."""
-        return scan_exact_or_smooth(self, signal, state)
+    def _run(self, state, signal):
+        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
+        return run_exact_or_smooth(self, state, signal)
 
     def _step(self, state, v, exact):
         v_prev, z = state

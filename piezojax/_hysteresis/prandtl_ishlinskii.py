@@ -8,7 +8,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import PiezojaxValueError, as_float_array, check_scalar, check_vector, concrete_or_none
 from .._custom_types import ScalarLike, VectorLike
 from .base import AbstractHysteresis
-from .play import check_smoothing, error_if_bad_smoothing, param_dtype, scan_exact_or_smooth, stop_update
+from .play import check_smoothing, error_if_bad_smoothing, param_dtype, run_exact_or_smooth, stop_update
 
 
 def _thresholds_error(thresholds: Array) -> Array:
@@ -90,10 +90,9 @@ class PrandtlIshlinskii(AbstractHysteresis):
     def step(self, state, v):
         return self._step(state, v, None)
 
-    def scan(self, signal, state=None):
-        """As `AbstractHysteresis.scan`; the exact or smooth loop is chosen outside the scan (see
-        `scan_exact_or_smooth`), with the same numbers as scanning `step`."""
-        return scan_exact_or_smooth(self, signal, state)
+    def _run(self, state, signal):
+        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
+        return run_exact_or_smooth(self, state, signal)
 
     def _step(self, state, v, exact):
         v_prev, z = state
