@@ -156,10 +156,18 @@ def _row(name, t, n, t_ref=None, ref=""):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short signals (smoke test)")
+    parser.add_argument(
+        "--default-xla-flags",
+        action="store_true",
+        help="do not raise XLA:CPU's small-loop threshold (see piezojax.enable_fast_cpu_scans)",
+    )
     args = parser.parse_args(argv)
+    import piezojax as pj
+
+    if not args.default_xla_flags:
+        pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
-    import piezojax as pj  # after the x64 switch, so default dtypes are float64
-    from piezojax._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii
+    from piezojax import PrandtlIshlinskii
 
     # cont2discrete warns about the numerator's leading zeros (an all-pole G): harmless here
     warnings.filterwarnings("ignore", category=scipy.signal.BadCoefficients)
@@ -176,6 +184,7 @@ def main(argv=None):
         f"({jax.devices()[0].device_kind}, {os.cpu_count()} cores, load average {load:.1f}), float64, "
         f"dt = {dt}, best of {repeats}"
     )
+    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
 
     # -- 1. 4th-order linear block --------------------------------------------------------------------------------
     G = pj.StableTransferFunction(1.0, omega=[2 * np.pi * 50, 2 * np.pi * 500], zeta=[0.3, 0.02])
