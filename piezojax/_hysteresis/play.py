@@ -17,6 +17,8 @@ side is continuous, so the result is $C^1$ in the state and in $r$ and $s$; it s
 operator and equals it at $s = 0$ (and for $r = 0$ at any $s$).
 """
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -258,7 +260,42 @@ def error_if_negative(x: Array, name: str) -> Array:
 # ---------------------------------------------------------------------------------------------------------------------
 
 
-class PlayOperator(AbstractHysteresis):
+class _AbstractStopCell(AbstractHysteresis):
+    """Shared cell of the play and stop operators: state `(previous input, stop values z)`, one update law."""
+
+    thresholds: eqx.AbstractVar[Float[Array, "*n"]]
+    smoothing: eqx.AbstractVar[Float[Array, ""]]
+
+    def check(self):
+        return eqx.tree_at(
+            lambda m: (m.thresholds, m.smoothing),
+            self,
+            (error_if_negative(self.thresholds, "thresholds"), error_if_bad_smoothing(self.smoothing)),
+        )
+
+    def init(self) -> tuple[Array, Array]:
+        """Demagnetised state `(previous input, stop values) = (0, 0)`."""
+        dtype = self.thresholds.dtype
+        return jnp.zeros((), dtype), jnp.zeros(self.thresholds.shape, dtype)
+
+    def step(self, state, v):
+        return self._step(state, v, None)
+
+    def _run(self, state, signal):
+        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
+        return run_exact_or_smooth(self, state, signal)
+
+    def _step(self, state, v, exact):
+        v_prev, z = state
+        z = stop_update(z, v - v_prev, self.thresholds, self.smoothing, exact)
+        return (v, z), self._output(v, z)
+
+    @abc.abstractmethod
+    def _output(self, v: Array, z: Array) -> Array:
+        """The operator's output from the input and the new stop values."""
+
+
+class PlayOperator(_AbstractStopCell):
     r"""The play (backlash) operator $P_r$, for one threshold or a vector of thresholds at once.
 
     $P_r[v]_k = \max\bigl(v_k - r, \min(v_k + r, P_r[v]_{k-1})\bigr)$ (paper 001 eq. 7), started from the
@@ -289,32 +326,11 @@ class PlayOperator(AbstractHysteresis):
         check_nonnegative(self.thresholds, "thresholds")
         self.smoothing = check_smoothing(smoothing, dtype)
 
-    def check(self) -> "PlayOperator":
-        return eqx.tree_at(
-            lambda m: (m.thresholds, m.smoothing),
-            self,
-            (error_if_negative(self.thresholds, "thresholds"), error_if_bad_smoothing(self.smoothing)),
-        )
-
-    def init(self) -> tuple[Array, Array]:
-        """Demagnetised state `(previous input, stop values) = (0, 0)`."""
-        dtype = self.thresholds.dtype
-        return jnp.zeros((), dtype), jnp.zeros(self.thresholds.shape, dtype)
-
-    def step(self, state, v):
-        return self._step(state, v, None)
-
-    def _run(self, state, signal):
-        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
-        return run_exact_or_smooth(self, state, signal)
-
-    def _step(self, state, v, exact):
-        v_prev, z = state
-        z = stop_update(z, v - v_prev, self.thresholds, self.smoothing, exact)
-        return (v, z), v - z
+    def _output(self, v, z):
+        return v - z
 
 
-class StopOperator(AbstractHysteresis):
+class StopOperator(_AbstractStopCell):
     r"""The stop (elastic–perfectly-plastic) operator $S_r = I - P_r$, for one threshold or a vector of thresholds.
 
     $S_r[v]_k = \operatorname{clip}(S_r[v]_{k-1} + v_k - v_{k-1}, -r, r)$, started from the demagnetised state
@@ -344,26 +360,5 @@ class StopOperator(AbstractHysteresis):
         check_nonnegative(self.thresholds, "thresholds")
         self.smoothing = check_smoothing(smoothing, dtype)
 
-    def check(self) -> "StopOperator":
-        return eqx.tree_at(
-            lambda m: (m.thresholds, m.smoothing),
-            self,
-            (error_if_negative(self.thresholds, "thresholds"), error_if_bad_smoothing(self.smoothing)),
-        )
-
-    def init(self) -> tuple[Array, Array]:
-        """Demagnetised state `(previous input, stop values) = (0, 0)`."""
-        dtype = self.thresholds.dtype
-        return jnp.zeros((), dtype), jnp.zeros(self.thresholds.shape, dtype)
-
-    def step(self, state, v):
-        return self._step(state, v, None)
-
-    def _run(self, state, signal):
-        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
-        return run_exact_or_smooth(self, state, signal)
-
-    def _step(self, state, v, exact):
-        v_prev, z = state
-        z = stop_update(z, v - v_prev, self.thresholds, self.smoothing, exact)
-        return (v, z), z
+    def _output(self, v, z):
+        return z
