@@ -7,8 +7,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_scalar, check_vector, concrete_or_none
 from .._custom_types import ScalarLike, VectorLike
-from .base import AbstractHysteresis
-from .play import check_smoothing, error_if_bad_smoothing, param_dtype, run_exact_or_smooth, stop_update
+from .play import _AbstractStopCell, check_smoothing, error_if_bad_smoothing, param_dtype
 
 
 def _thresholds_error(thresholds: Array) -> Array:
@@ -22,7 +21,7 @@ def _thresholds_error(thresholds: Array) -> Array:
 _THRESHOLDS_MESSAGE = "`thresholds` must be finite, >= 0 and strictly ascending"
 
 
-class PrandtlIshlinskii(AbstractHysteresis):
+class PrandtlIshlinskii(_AbstractStopCell):
     r"""The Prandtl–Ishlinskii hysteresis operator: a linear term plus weighted play operators.
 
     $H[v] = w_0 v + \sum_{i=1}^{n} w_i P_{r_i}[v]$ with $0 \leq r_1 < \dots < r_n$ (paper 001 eq. 7–8, where
@@ -82,22 +81,9 @@ class PrandtlIshlinskii(AbstractHysteresis):
             lambda m: (m.thresholds, m.smoothing), self, (thresholds, error_if_bad_smoothing(self.smoothing))
         )
 
-    def init(self) -> tuple[Array, Array]:
-        """Demagnetised state `(previous input, stop values of the plays) = (0, 0)`."""
-        dtype = self.thresholds.dtype
-        return jnp.zeros((), dtype), jnp.zeros(self.thresholds.shape, dtype)
-
-    def step(self, state, v):
-        return self._step(state, v, None)
-
-    def _run(self, state, signal):
-        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`).
-        return run_exact_or_smooth(self, state, signal)
-
-    def _step(self, state, v, exact):
-        v_prev, z = state
-        z = stop_update(z, v - v_prev, self.thresholds, self.smoothing, exact)
-        return (v, z), self.w0 * v + jnp.dot(self.weights, v - z)
+    def _output(self, v, z):
+        # state and update are the shared stop cell's; the plays are v - z
+        return self.w0 * v + jnp.dot(self.weights, v - z)
 
     def loading_curve(self, v: ArrayLike) -> Array:
         r"""The initial loading curve $\varphi(v) = w_0 v + \sum_i w_i \max(v - r_i, 0)$ for $v \geq 0$.
