@@ -1,0 +1,757 @@
+"""Measured experiments, data files and datasets for calibration.
+
+An *experiment* is one record on a uniform time grid: time `t` [s], applied voltage `v_in` [V], and any subset of the
+measured channels in `CHANNELS`. A `Dataset` is an ordered collection of experiments of possibly different lengths and
+channel sets, with the grouping and padding the calibration engine needs to `vmap` over them.
+
+Data live on the host as read-only float64 numpy arrays: they are loaded and validated once, eagerly, with error
+messages naming the file, the column and the row. The engine converts them to JAX arrays (in the dtype it chooses)
+when it builds residuals.
+"""
+
+import dataclasses
+import io
+import math
+import os
+import types
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+
+from piezojax._checks import PiezojaxValueError
+
+from ._io import atomic_file, atomic_write_bytes
+
+CHANNELS: tuple[str, ...] = ("v_out", "displacement", "force", "charge", "current")
+"""Measured channels besides `t` [s] and `v_in` [V], all in SI units:
+
+- `v_out` [V]: output voltage of the sensing circuit (transimpedance amplifier, charge amplifier, sensor layer);
+- `displacement` [m]: actuator/stage displacement;
+- `force` [N]: force on the actuator (e.g. from a force sensor at the tip);
+- `charge` [C]: charge on the piezo electrodes;
+- `current` [A]: current into the piezo.
+"""
+
+UNITS: Mapping[str, str] = types.MappingProxyType(
+    {"t": "s", "v_in": "V", "v_out": "V", "displacement": "m", "force": "N", "charge": "C", "current": "A"}
+)
+
+COLUMNS: tuple[str, ...] = ("t", "v_in") + CHANNELS
+
+DT_RTOL = 1e-6
+"""Largest accepted relative spread of the time steps: max |Δt_k − dt| ≤ DT_RTOL · dt."""
+
+SUPPORTED_SUFFIXES: tuple[str, ...] = (".csv", ".npz", ".h5", ".hdf5", ".mat")
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False  # `a` is the private copy made by `_column`
+    return a
+
+
+def _column(value, label: str, column: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+    except Exception as e:
+        raise PiezojaxValueError(f"{label}: column {column!r} is not an array ({type(value).__name__})") from e
+    if arr.dtype.kind == "c":
+        raise PiezojaxValueError(f"{label}: column {column!r} is complex; expected real numbers")
+    if arr.dtype.kind not in "biuf":
+        raise PiezojaxValueError(f"{label}: column {column!r} is not numeric (dtype {arr.dtype})")
+    if arr.ndim != 1:
+        raise PiezojaxValueError(f"{label}: column {column!r} must be 1-D, got shape {tuple(arr.shape)}")
+    return np.array(arr, dtype=np.float64, copy=True)  # private copy: the caller's array may change later
+
+
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
+class Experiment:
+    """One measured record on a uniform time grid: `t` [s], `v_in` [V] and any of the `CHANNELS`.
+
+    $t_k = t_0 + k\\,dt,\\quad k = 0, \\dots, n-1$, with every column of length $n \\ge 2$ and finite.
+
+    Immutable: a frozen dataclass holding read-only float64 numpy arrays. Host data rather than an `eqx.Module`
+    because it is loaded and validated once, eagerly (errors name the file, column and row, which needs concrete
+    values), and is never differentiated; `Dataset.padded` produces the pytree the engine feeds to `jit`/`vmap`.
+
+    **Arguments:**
+
+    - `t`: sample times [s], strictly increasing and uniform (relative spread of the steps ≤ `DT_RTOL`).
+    - `v_in`: applied voltage [V].
+    - `channels`: mapping from names in `CHANNELS` to measured signals (any subset, possibly empty).
+    - `name`: the experiment's name (unique inside a `Dataset`).
+    - `source`: the file it was loaded from, if any (used in error messages).
+
+    **Returns:**
+
+    The validated experiment; bad input raises `PiezojaxValueError` naming the experiment (or file) and the column.
+
+    ```python
+    exp = Experiment.from_arrays(v_in=v, dt=1e-3, displacement=x, name="step_50V")
+    train, test = exp.slice(0.0, 10.0), exp.slice(10.0, None)
+    ```
+    """
+
+    t: np.ndarray
+    v_in: np.ndarray
+    channels: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    name: str = "experiment"
+    source: str | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise PiezojaxValueError(f"`name` must be a non-empty string, got {self.name!r}")
+        label = self._label()
+        if not isinstance(self.channels, Mapping):
+            raise PiezojaxValueError(f"{label}: `channels` must be a mapping, got {type(self.channels).__name__}")
+        unknown = [k for k in self.channels if k not in CHANNELS]
+        if unknown:
+            raise PiezojaxValueError(
+                f"{label}: unknown channel(s) {unknown}; allowed channels are {list(CHANNELS)} (besides 't', 'v_in')"
+            )
+        cols = {"t": _column(self.t, label, "t"), "v_in": _column(self.v_in, label, "v_in")}
+        for k in CHANNELS:
+            if k in self.channels:
+                cols[k] = _column(self.channels[k], label, k)
+        n = cols["t"].shape[0]
+        if n < 2:
+            raise PiezojaxValueError(f"{label}: column 't' has {n} sample(s); an experiment needs at least 2")
+        for k, a in cols.items():
+            if a.shape[0] != n:
+                raise PiezojaxValueError(
+                    f"{label}: column {k!r} has {a.shape[0]} samples but column 't' has {n}; all columns must have "
+                    "equal length"
+                )
+        for k, a in cols.items():
+            bad = ~np.isfinite(a)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise PiezojaxValueError(
+                    f"{label}: column {k!r} has a non-finite value ({a[i]}) at row {i} (0-based sample index); "
+                    f"{int(bad.sum())} non-finite value(s) in total"
+                )
+        t = cols["t"]
+        d = np.diff(t)
+        if not (d > 0).all():
+            i = int(np.argmax(~(d > 0)))
+            raise PiezojaxValueError(
+                f"{label}: column 't' is not strictly increasing: "
+                f"t[{i + 1}] = {float(t[i + 1])!r} <= t[{i}] = {float(t[i])!r}"
+            )
+        dt = (t[-1] - t[0]) / (n - 1)
+        dev = np.abs(d - dt)
+        j = int(np.argmax(dev))
+        if dev[j] > DT_RTOL * dt:
+            raise PiezojaxValueError(
+                f"{label}: column 't' is not uniformly sampled: mean step dt = {dt:.6g} s but "
+                f"t[{j + 1}] - t[{j}] = {d[j]:.6g} s (max |Δt - dt| = {dev[j]:.3g} s = {dev[j] / dt:.3g}·dt "
+                f"> {DT_RTOL:g}·dt); resample the record onto a uniform grid"
+            )
+        object.__setattr__(self, "t", _readonly(t))
+        object.__setattr__(self, "v_in", _readonly(cols["v_in"]))
+        chans = {k: _readonly(cols[k]) for k in CHANNELS if k in cols}
+        object.__setattr__(self, "channels", types.MappingProxyType(chans))
+
+    def __reduce__(self):
+        # The read-only channel mapping is not picklable itself; rebuild (and revalidate) from plain values.
+        return (Experiment, (self.t, self.v_in, dict(self.channels), self.name, self.source))
+
+    def _label(self) -> str:
+        if self.source is not None:
+            return f"experiment {self.name!r} (file {self.source!r})"
+        return f"experiment {self.name!r}"
+
+    @classmethod
+    def from_arrays(
+        cls,
+        *,
+        v_in,
+        t=None,
+        dt: float | None = None,
+        t0: float = 0.0,
+        name: str = "experiment",
+        source: str | None = None,
+        **channels,
+    ) -> "Experiment":
+        """Build an experiment from arrays, with either the time vector `t` or the step `dt` ($t_k = t_0 + k\\,dt$).
+
+        **Arguments:**
+
+        - `v_in`: applied voltage [V].
+        - `t`: sample times [s]; or
+        - `dt`: sampling step [s] (with the start time `t0`, default 0).
+        - `name`: the experiment's name.
+        - `**channels`: measured signals named as in `CHANNELS`; `None` values are skipped.
+
+        **Returns:**
+
+        The validated `Experiment`.
+
+        ```python
+        exp = Experiment.from_arrays(v_in=v, dt=1e-4, v_out=vo, force=f, name="contact")
+        ```
+        """
+        label = f"experiment {name!r}"
+        if (t is None) == (dt is None):
+            raise PiezojaxValueError(f"{label}: pass exactly one of `t` and `dt`")
+        if t is None:
+            dt_f = float(np.asarray(dt)) if np.ndim(dt) == 0 else math.nan
+            if not (math.isfinite(dt_f) and dt_f > 0):
+                raise PiezojaxValueError(f"{label}: `dt` must be a positive finite scalar, got {dt!r}")
+            n = np.shape(v_in)[0] if np.ndim(v_in) >= 1 else 0
+            t = float(t0) + dt_f * np.arange(n, dtype=np.float64)
+        chans = {k: v for k, v in channels.items() if v is not None}
+        return cls(t=t, v_in=v_in, channels=chans, name=name, source=source)
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.t.shape[0])
+
+    @property
+    def dt(self) -> float:
+        """Sampling step [s], $(t_{n-1} - t_0)/(n-1)$."""
+        return float((self.t[-1] - self.t[0]) / (self.n - 1))
+
+    @property
+    def duration(self) -> float:
+        """Time span $t_{n-1} - t_0 = (n-1)\\,dt$ [s]."""
+        return float(self.t[-1] - self.t[0])
+
+    @property
+    def channel_names(self) -> tuple[str, ...]:
+        """The measured channels present, in `CHANNELS` order."""
+        return tuple(self.channels)
+
+    def has(self, channel: str) -> bool:
+        """Whether `channel` was measured (`'t'` and `'v_in'` always are)."""
+        if channel not in COLUMNS:
+            raise PiezojaxValueError(f"unknown channel {channel!r}; allowed channels are {list(CHANNELS)}")
+        return channel in ("t", "v_in") or channel in self.channels
+
+    def __getitem__(self, column: str) -> np.ndarray:
+        """The column `t`, `v_in` or a measured channel, by name."""
+        if column == "t":
+            return self.t
+        if column == "v_in":
+            return self.v_in
+        if column in self.channels:
+            return self.channels[column]
+        if column in CHANNELS:
+            raise PiezojaxValueError(f"{self._label()} has no channel {column!r}; it has {list(self.channels)}")
+        raise PiezojaxValueError(f"unknown column {column!r}; allowed columns are {list(COLUMNS)}")
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """All columns by name: `t`, `v_in`, then the measured channels in `CHANNELS` order."""
+        return {"t": self.t, "v_in": self.v_in, **self.channels}
+
+    def slice(self, start: float | None = None, stop: float | None = None, name: str | None = None) -> "Experiment":
+        """The samples with $start \\le t_k < stop$ (times in seconds, half-open like Python slices).
+
+        Times are kept (not shifted to start at 0). A boundary within $10^{-6}\\,dt$ of a sample counts as on it, so
+        `slice(0, 10)` and `slice(10, None)` partition a record exactly even if `t` carries rounding error.
+
+        **Arguments:**
+
+        - `start`, `stop`: times in seconds; `None` means the start/end of the record.
+        - `name`: name of the result; default `"NAME[start:stop]"`.
+
+        **Returns:**
+
+        A new `Experiment` with at least 2 samples (else `PiezojaxValueError`).
+        """
+        tol = DT_RTOL * self.dt
+        i0 = 0 if start is None else int(np.searchsorted(self.t, float(start) - tol, side="left"))
+        i1 = self.n if stop is None else int(np.searchsorted(self.t, float(stop) - tol, side="left"))
+        if i1 - i0 < 2:
+            raise PiezojaxValueError(
+                f"{self._label()}: slice({start}, {stop}) keeps {max(i1 - i0, 0)} sample(s) of the record "
+                f"[{self.t[0]:.6g}, {self.t[-1]:.6g}] s; at least 2 are needed"
+            )
+        if name is None:
+            name = f"{self.name}[{'' if start is None else f'{start:g}'}:{'' if stop is None else f'{stop:g}'}]"
+        return Experiment(
+            t=self.t[i0:i1],
+            v_in=self.v_in[i0:i1],
+            channels={k: v[i0:i1] for k, v in self.channels.items()},
+            name=name,
+            source=self.source,
+        )
+
+    def __repr__(self) -> str:
+        chans = ", ".join(self.channels) or "none"
+        return f"Experiment({self.name!r}, n={self.n}, dt={self.dt:.6g} s, channels: {chans})"
+
+
+# ----------------------------------------------------------------------------------------------------------- loading
+
+
+def _squeeze_vector(a: np.ndarray) -> np.ndarray:
+    # MATLAB stores vectors as n×1 or 1×n (and v7.3 transposes them); accept those, leave other shapes to validation.
+    if a.ndim >= 2 and sum(s != 1 for s in a.shape) <= 1:
+        return a.reshape(-1)
+    return a
+
+
+def _columns_to_experiment(
+    data: Mapping[str, np.ndarray], path: Path, name: str | None, ignore_extra: bool
+) -> Experiment:
+    src = str(path)
+    label = f"file {src!r}"
+    missing = [c for c in ("t", "v_in") if c not in data]
+    if missing:
+        raise PiezojaxValueError(
+            f"{label}: required column(s) {missing} missing; found {sorted(data)} "
+            f"(expected 't' [s], 'v_in' [V] and any of {list(CHANNELS)})"
+        )
+    extra = [k for k in data if k not in COLUMNS]
+    if extra and not ignore_extra:
+        raise PiezojaxValueError(
+            f"{label}: unknown column(s) {extra}; allowed columns are {list(COLUMNS)} (pass ignore_extra=True to "
+            "skip them)"
+        )
+    return Experiment(
+        t=data["t"],
+        v_in=data["v_in"],
+        channels={k: data[k] for k in CHANNELS if k in data},
+        name=path.stem if name is None else name,
+        source=src,
+    )
+
+
+def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    text = path.read_text(encoding="utf-8-sig")
+    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise PiezojaxValueError(f"file {str(path)!r}: no header row (the file is empty or has only comments)")
+    head = lines[0][1]
+    # Comma by default; tab or semicolon (spreadsheet exports in some locales) when the header uses them instead.
+    delim = next((d for d in (",", "\t", ";") if d in head), ",")
+    header = [h.strip().strip('"').strip("'").strip() for h in head.split(delim)]
+    if any(not h for h in header):
+        raise PiezojaxValueError(f"file {str(path)!r}: empty column name in header row {head!r}")
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise PiezojaxValueError(f"file {str(path)!r}: duplicate column(s) {dup} in header row")
+    body = lines[1:]
+    for lineno, ln in body:
+        if ln.count(delim) != len(header) - 1:
+            raise PiezojaxValueError(
+                f"file {str(path)!r}: line {lineno} has {ln.count(delim) + 1} fields but the header names "
+                f"{len(header)} columns"
+            )
+    if not body:
+        return {h: np.zeros(0) for h in header}
+    try:
+        values = np.loadtxt(io.StringIO("\n".join(ln for _, ln in body)), delimiter=delim, ndmin=2, dtype=np.float64)
+    except ValueError as e:
+        raise PiezojaxValueError(f"file {str(path)!r}: cannot parse numbers ({e})") from e
+    return {h: values[:, j] for j, h in enumerate(header)}
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: _squeeze_vector(np.asarray(z[k])) for k in z.files}
+
+
+def _read_hdf5_group(g, path: Path) -> dict[str, np.ndarray]:
+    import h5py
+
+    out = {}
+    for k, obj in g.items():
+        # Sub-groups and MATLAB's '#refs#'/'#subsystem#' bookkeeping are not columns.
+        if not isinstance(obj, h5py.Dataset) or k.startswith("#"):
+            continue
+        out[k] = _squeeze_vector(np.asarray(obj[()]))
+    return out
+
+
+def _read_hdf5(path: Path, group: str | None) -> dict[str, np.ndarray]:
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if group is None:
+            return _read_hdf5_group(f, path)
+        if group not in f or not isinstance(f[group], h5py.Group):
+            groups = sorted(k for k, v in f.items() if isinstance(v, h5py.Group))
+            raise PiezojaxValueError(f"file {str(path)!r}: no group {group!r}; groups at the root: {groups}")
+        return _read_hdf5_group(f[group], path)
+
+
+def _read_mat(path: Path, group: str | None) -> dict[str, np.ndarray]:
+    import h5py
+    import scipy.io
+
+    if h5py.is_hdf5(path):  # MATLAB v7.3 files are HDF5
+        return _read_hdf5(path, group)
+    raw = scipy.io.loadmat(path, squeeze_me=False)
+    if group is not None:
+        # A struct variable holding the columns as fields (data.t, data.v_in, ...).
+        s = raw.get(group)
+        if s is None or s.dtype.names is None or s.size != 1:
+            structs = sorted(k for k, v in raw.items() if not k.startswith("__") and v.dtype.names and v.size == 1)
+            raise PiezojaxValueError(
+                f"file {str(path)!r}: no struct variable {group!r}; structs in the file: {structs}"
+            )
+        s = s.reshape(-1)[0]
+        return {k: _squeeze_vector(np.asarray(s[k])) for k in s.dtype.names}
+    return {k: _squeeze_vector(np.asarray(v)) for k, v in raw.items() if not k.startswith("__")}
+
+
+def _resolve_path(path: str | os.PathLike) -> Path:
+    try:
+        p = Path(os.fspath(path)).expanduser()
+    except TypeError as e:
+        raise PiezojaxValueError(f"`path` must be a file path, got {type(path).__name__}") from e
+    if p.suffix.lower() not in SUPPORTED_SUFFIXES:
+        raise PiezojaxValueError(
+            f"file {str(p)!r}: unsupported suffix {p.suffix!r}; supported formats are {list(SUPPORTED_SUFFIXES)}"
+        )
+    return p
+
+
+def load_experiment(
+    path: str | os.PathLike, name: str | None = None, *, group: str | None = None, ignore_extra: bool = False
+) -> Experiment:
+    """Load one experiment from a data file, chosen by suffix.
+
+    Formats: `.csv` (a header row naming the columns, comma-separated numbers — tab or semicolon if the header uses
+    them — and `#` comment lines allowed), `.npz`,
+    `.h5`/`.hdf5` (one dataset per column at the root, or in the group `group`), `.mat` (MATLAB v5 via
+    `scipy.io.loadmat`; v7.3 files are HDF5 and are read with h5py). Columns are named `t` [s], `v_in` [V] and any of
+    `CHANNELS`; n×1 and 1×n matrices are squeezed to vectors.
+
+    **Arguments:**
+
+    - `path`: the data file.
+    - `name`: the experiment's name; default the file's stem.
+    - `group`: HDF5 / v7.3 `.mat` group holding the datasets, or for a v5 `.mat` a struct variable holding the
+      columns as fields (default: the root / top-level variables).
+    - `ignore_extra`: skip columns that are not `t`, `v_in` or a channel instead of raising.
+
+    **Returns:**
+
+    The validated `Experiment`. Any problem — missing or unreadable file, unknown suffix, missing `t`/`v_in`,
+    unknown column, NaN, non-uniform time, unequal lengths — raises `PiezojaxValueError` naming the file (and the
+    column and row where that applies).
+
+    ```python
+    exp = load_experiment("data/step_100V.csv")
+    ```
+    """
+    p = _resolve_path(path)
+    if not p.exists():
+        raise PiezojaxValueError(f"file {str(p)!r} does not exist")
+    if p.is_dir():
+        raise PiezojaxValueError(f"file {str(p)!r} is a directory, not a data file")
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".csv":
+            data = _read_csv(p)
+        elif suffix == ".npz":
+            data = _read_npz(p)
+        elif suffix in (".h5", ".hdf5"):
+            data = _read_hdf5(p, group)
+        else:
+            data = _read_mat(p, group)
+    except PiezojaxValueError:
+        raise
+    except Exception as e:  # parsers raise anything (OSError, ValueError, zipfile.BadZipFile, struct.error, ...)
+        raise PiezojaxValueError(f"file {str(p)!r}: cannot read it as {suffix} ({type(e).__name__}: {e})") from e
+    return _columns_to_experiment(data, p, name, ignore_extra)
+
+
+def save_experiment(exp: Experiment, path: str | os.PathLike, *, group: str | None = None) -> Path:
+    """Write `exp` to a data file (format by suffix, as in `load_experiment`), atomically.
+
+    CSV numbers are written with 17 significant digits, so every format round-trips float64 exactly. `.mat` files
+    are MATLAB v5 with column vectors. The experiment's name is not stored (it comes back as the file's stem).
+
+    **Arguments:**
+
+    - `exp`: the experiment.
+    - `path`: destination file; its suffix picks the format.
+    - `group`: for HDF5, write the datasets into this group instead of the root.
+
+    **Returns:**
+
+    The absolute `Path` written.
+
+    ```python
+    save_experiment(exp.slice(0, 5), "train.h5")
+    ```
+    """
+    if not isinstance(exp, Experiment):
+        raise PiezojaxValueError(f"`exp` must be an Experiment, got {type(exp).__name__}")
+    p = _resolve_path(path)
+    cols = exp.columns()
+    suffix = p.suffix.lower()
+    if suffix == ".csv":
+        units = ", ".join(f"{k} [{UNITS[k]}]" for k in cols)
+        head = f"# piezojax experiment {exp.name!r}; units: {units}\n" + ",".join(cols) + "\n"
+        buf = io.StringIO()
+        np.savetxt(buf, np.column_stack(list(cols.values())), delimiter=",", fmt="%.17g")
+        return atomic_write_bytes(p, (head + buf.getvalue()).encode("utf-8"))
+    if suffix == ".npz":
+        buf = io.BytesIO()
+        np.savez(buf, **cols)
+        return atomic_write_bytes(p, buf.getvalue())
+    if suffix == ".mat":
+        import scipy.io
+
+        buf = io.BytesIO()
+        scipy.io.savemat(buf, cols, oned_as="column")
+        return atomic_write_bytes(p, buf.getvalue())
+    import h5py
+
+    with atomic_file(p) as tmp:
+        with h5py.File(tmp, "w") as f:
+            g = f if group is None else f.create_group(group)
+            for k, v in cols.items():
+                ds = g.create_dataset(k, data=v)
+                ds.attrs["units"] = UNITS[k]
+    return p.absolute()
+
+
+# ----------------------------------------------------------------------------------------------------------- dataset
+
+
+class PaddedData(eqx.Module):
+    """Experiments of different lengths stacked into `(E, N_max)` arrays, zero padded, with masks.
+
+    A pytree (numpy float64 leaves; the engine casts them), so it can be passed to `jit`/`vmap`.
+
+    **Fields:**
+
+    - `t`, `v_in`: `(E, N_max)`, zero beyond each experiment's length.
+    - `channels`: dict channel → `(E, N_max)` values (zero where padded or not measured).
+    - `masks`: dict channel → `(E, N_max)` bool, True only where the experiment measured that channel and the sample
+      is real.
+    - `valid`: `(E, N_max)` bool, True for the real samples (`k < lengths[e]`).
+    - `lengths`: `(E,)` int, number of samples per experiment.
+    - `dt`: `(E,)` sampling steps [s].
+    - `names`: the experiments' names (static).
+    """
+
+    t: np.ndarray
+    v_in: np.ndarray
+    channels: dict[str, np.ndarray]
+    masks: dict[str, np.ndarray]
+    valid: np.ndarray
+    lengths: np.ndarray
+    dt: np.ndarray
+    names: tuple[str, ...] = eqx.field(static=True)
+
+
+def _check_channel_names(channels, what: str) -> tuple[str, ...]:
+    if isinstance(channels, str):
+        channels = (channels,)
+    try:
+        channels = tuple(channels)
+    except TypeError as e:
+        raise PiezojaxValueError(f"`{what}` must be a channel name or a sequence of them") from e
+    unknown = [c for c in channels if c not in CHANNELS]
+    if unknown:
+        raise PiezojaxValueError(f"`{what}`: unknown channel(s) {unknown}; allowed channels are {list(CHANNELS)}")
+    return tuple(c for c in CHANNELS if c in channels)
+
+
+class Dataset(Sequence):
+    """An immutable, ordered collection of `Experiment`s with unique names.
+
+    Experiments may differ in length, sampling step and measured channels. `groups()` gathers those the engine can
+    `vmap` together (equal length, step and channel set); `padded()` stacks all of them with masks.
+
+    **Arguments:**
+
+    - `experiments`: the experiments; their names must be unique (`PiezojaxValueError` naming the duplicates
+      otherwise — rename with `Experiment(..., name=...)` or `slice(..., name=...)`).
+
+    **Returns:**
+
+    The dataset, indexable by position or by name.
+
+    ```python
+    ds = Dataset.from_files(["step_25V.csv", "step_50V.csv"])
+    ds.require(["v_out", "displacement"]); batch = ds.padded()
+    ```
+    """
+
+    __slots__ = ("_experiments", "_index")
+
+    def __init__(self, experiments: Iterable[Experiment]):
+        if isinstance(experiments, Experiment):
+            experiments = (experiments,)
+        exps = tuple(experiments)
+        if not exps:
+            raise PiezojaxValueError("`experiments` must not be empty")
+        for i, e in enumerate(exps):
+            if not isinstance(e, Experiment):
+                raise PiezojaxValueError(f"`experiments[{i}]` must be an Experiment, got {type(e).__name__}")
+        names = [e.name for e in exps]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise PiezojaxValueError(f"`experiments`: duplicate experiment name(s) {dup}; names must be unique")
+        object.__setattr__(self, "_experiments", exps)
+        object.__setattr__(self, "_index", types.MappingProxyType({n: i for i, n in enumerate(names)}))
+
+    def __setattr__(self, key, value):
+        raise AttributeError("Dataset is immutable")
+
+    def __reduce__(self):
+        return (Dataset, (self._experiments,))
+
+    @classmethod
+    def from_files(
+        cls, paths: Iterable[str | os.PathLike], *, group: str | None = None, ignore_extra: bool = False
+    ) -> "Dataset":
+        """Load every file with `load_experiment`; names are the file stems, made unique by prefixing parent
+        directories where stems collide (`run1/data.csv`, `run2/data.csv` → `run1/data`, `run2/data`).
+
+        **Arguments:**
+
+        - `paths`: data files.
+        - `group`, `ignore_extra`: as in `load_experiment`.
+
+        **Returns:**
+
+        The `Dataset`.
+        """
+        if isinstance(paths, str | os.PathLike):
+            paths = (paths,)
+        ps = [Path(os.fspath(p)).expanduser() for p in paths]
+        if not ps:
+            raise PiezojaxValueError("`paths` must name at least one data file")
+        names = _unique_names(ps)
+        return cls(load_experiment(p, name=n, group=group, ignore_extra=ignore_extra) for p, n in zip(ps, names))
+
+    def __len__(self) -> int:
+        return len(self._experiments)
+
+    def __iter__(self) -> Iterator[Experiment]:
+        return iter(self._experiments)
+
+    def __getitem__(self, key):
+        if isinstance(key, str):
+            try:
+                return self._experiments[self._index[key]]
+            except KeyError:
+                raise KeyError(f"no experiment named {key!r}; names are {self.names}") from None
+        if isinstance(key, slice):
+            return Dataset(self._experiments[key])
+        if isinstance(key, int | np.integer):
+            return self._experiments[int(key)]
+        raise PiezojaxValueError(f"Dataset index must be an int, a slice or a name, got {type(key).__name__}")
+
+    def __contains__(self, item) -> bool:
+        if isinstance(item, str):
+            return item in self._index
+        return any(item is e for e in self._experiments)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self._index)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The channels measured in at least one experiment, in `CHANNELS` order."""
+        have = {c for e in self._experiments for c in e.channels}
+        return tuple(c for c in CHANNELS if c in have)
+
+    def require(self, channels: str | Iterable[str]) -> "Dataset":
+        """Check that every experiment measured every channel in `channels`; returns `self` for chaining.
+
+        Raises `PiezojaxValueError` listing, per experiment, the channels it lacks.
+        """
+        req = _check_channel_names(channels, "channels")
+        lacking = {e.name: [c for c in req if c not in e.channels] for e in self._experiments}
+        lacking = {k: v for k, v in lacking.items() if v}
+        if lacking:
+            detail = "; ".join(f"{k!r} lacks {v}" for k, v in lacking.items())
+            raise PiezojaxValueError(f"required channel(s) {list(req)} missing: {detail}")
+        return self
+
+    def groups(self, dt_rtol: float = 1e-9) -> list[list[int]]:
+        """Indices of experiments that can be `vmap`ped together: equal `n`, equal channel set and equal `dt`
+        (to relative tolerance `dt_rtol`). Groups are in order of first appearance.
+        """
+        groups: list[list[int]] = []
+        keys: list[tuple[int, tuple[str, ...], float]] = []
+        for i, e in enumerate(self._experiments):
+            for g, (n, ch, dt) in zip(groups, keys):
+                if e.n == n and e.channel_names == ch and abs(e.dt - dt) <= dt_rtol * dt:
+                    g.append(i)
+                    break
+            else:
+                groups.append([i])
+                keys.append((e.n, e.channel_names, e.dt))
+        return groups
+
+    def padded(self, channels: str | Iterable[str] | None = None) -> PaddedData:
+        """Stack all experiments into `(E, N_max)` arrays, zero padded, with per-channel masks.
+
+        **Arguments:**
+
+        - `channels`: the channels to include (default: `self.channels`); each must be measured by at least one
+          experiment.
+
+        **Returns:**
+
+        A `PaddedData`; `masks[c][e, k]` is True iff experiment `e` measured `c` and `k < lengths[e]`.
+        """
+        chans = self.channels if channels is None else _check_channel_names(channels, "channels")
+        none = [c for c in chans if not any(c in e.channels for e in self._experiments)]
+        if none:
+            raise PiezojaxValueError(f"`channels`: {none} measured in none of the experiments {list(self.names)}")
+        E = len(self)
+        N = max(e.n for e in self._experiments)
+        lengths = np.array([e.n for e in self._experiments], dtype=np.int64)
+        valid = np.arange(N)[None, :] < lengths[:, None]
+        t = np.zeros((E, N))
+        v_in = np.zeros((E, N))
+        vals = {c: np.zeros((E, N)) for c in chans}
+        masks = {c: np.zeros((E, N), dtype=bool) for c in chans}
+        for i, e in enumerate(self._experiments):
+            t[i, : e.n] = e.t
+            v_in[i, : e.n] = e.v_in
+            for c in chans:
+                if c in e.channels:
+                    vals[c][i, : e.n] = e.channels[c]
+                    masks[c][i, : e.n] = True
+        return PaddedData(
+            t=t,
+            v_in=v_in,
+            channels=vals,
+            masks=masks,
+            valid=valid,
+            lengths=lengths,
+            dt=np.array([e.dt for e in self._experiments]),
+            names=self.names,
+        )
+
+    def __repr__(self) -> str:
+        inner = ", ".join(f"{e.name!r} (n={e.n})" for e in self._experiments[:4])
+        more = f", … {len(self) - 4} more" if len(self) > 4 else ""
+        return f"Dataset({len(self)} experiments: {inner}{more}; channels: {', '.join(self.channels) or 'none'})"
+
+
+def _unique_names(paths: Sequence[Path]) -> list[str]:
+    """File stems, lengthened only where two different files would share a name: first by the suffix
+    (`run.csv`, `run.h5`), then by parent directories (`r1/data`, `r2/data`). Identical paths stay duplicates, which
+    `Dataset` reports."""
+    full = [p.absolute() for p in paths]
+
+    def name(i: int, level: int) -> str:
+        depth, with_suffix = divmod(level, 2)
+        parts = full[i].parts[1:-1] + (full[i].name if with_suffix else full[i].stem,)
+        return "/".join(parts[max(len(parts) - 1 - depth, 0) :])
+
+    out = []
+    for i in range(len(full)):
+        others = [j for j in range(len(full)) if full[j] != full[i]]
+        level = 0
+        while level < 2 * len(full[i].parts) and any(name(j, level) == name(i, level) for j in others):
+            level += 1
+        out.append(name(i, level))
+    return out

@@ -1,0 +1,346 @@
+"""Atomic file output: nothing the calibration engine writes is ever left half-way.
+
+Every writer goes through a temporary sibling (same directory, so the final `os.replace` is an atomic rename on the
+same filesystem), is flushed and fsync'ed, and only then renamed onto the destination. On any exception —
+`KeyboardInterrupt` included — the temporary is removed and the destination is untouched.
+"""
+
+import contextlib
+import ctypes
+import json
+import math
+import os
+import shutil
+import stat
+import tempfile
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from piezojax._checks import PiezojaxValueError
+
+_TMP_TAG = ".tmp-"
+
+
+def _describe_os_error(e: OSError) -> str:
+    return e.strerror or str(e)
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Check that `path` can be created or replaced, before any long computation starts.
+
+    Tests the parent directory the way the writers use it: by creating and removing a temporary file there
+    (`os.access` is not enough on read-only mounts or when running as root).
+
+    **Arguments:**
+
+    - `path`: the file or directory that will be written.
+
+    **Returns:**
+
+    The absolute `Path`. Raises `PiezojaxValueError` naming `path` if its parent does not exist, is not a directory,
+    or is not writable, or if `path` itself is an existing directory where a file is expected (or vice versa is
+    left to the writer).
+
+    ```python
+    out = check_writable("results/fit.json")  # fails now, not after an hour of fitting
+    ```
+    """
+    p = Path(os.fspath(path)).expanduser().absolute()
+    parent = p.parent
+    if not parent.exists():
+        raise PiezojaxValueError(f"cannot write {str(p)!r}: directory {str(parent)!r} does not exist")
+    if not parent.is_dir():
+        raise PiezojaxValueError(f"cannot write {str(p)!r}: {str(parent)!r} is not a directory")
+    try:
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=f".{p.name}{_TMP_TAG}probe-")
+    except OSError as e:
+        raise PiezojaxValueError(
+            f"cannot write {str(p)!r}: directory {str(parent)!r} is not writable ({_describe_os_error(e)})"
+        ) from e
+    os.close(fd)
+    os.unlink(probe)
+    return p
+
+
+def _fsync_directory(directory: Path) -> None:
+    # Makes the rename itself durable; not supported everywhere (e.g. Windows), hence best effort.
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _umask() -> int:
+    # Reading it from /proc avoids briefly changing the process umask (not thread-safe); elsewhere, set and restore.
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def _default_file_mode(existing: Path) -> int:
+    # mkstemp creates 0600 files; give the result the mode a plain open() would (or keep the replaced file's mode).
+    try:
+        return stat.S_IMODE(existing.stat().st_mode)
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
+    """Context manager yielding a temporary file path next to `path`; renamed onto `path` on normal exit.
+
+    For writers that want a file name (h5py). The temporary keeps the suffix of `path`, so suffix-sniffing writers
+    behave. On any exception the temporary is removed and `path` is untouched.
+
+    **Arguments:**
+
+    - `path`: destination file.
+
+    **Returns:**
+
+    A context manager yielding the temporary `Path` to write to.
+
+    ```python
+    with atomic_file("run.h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            f["t"] = t
+    ```
+    """
+    p = check_writable(path)
+    if p.is_dir():
+        raise PiezojaxValueError(f"cannot write file {str(p)!r}: a directory of that name exists")
+    fd, tmp_name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.stem}{_TMP_TAG}", suffix=p.suffix)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, _default_file_mode(p))
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    _fsync_directory(p.parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write `data` to `path` atomically: temp file in the same directory, fsync, `os.replace`.
+
+    **Arguments:**
+
+    - `path`: destination file (its parent directory must exist).
+    - `data`: the bytes to write.
+
+    **Returns:**
+
+    The absolute `Path` written. Raises `PiezojaxValueError` naming `path` if it cannot be written; a reader
+    sees either the old content or the new one, never a partial file.
+
+    ```python
+    atomic_write_bytes("model.eqx", buffer.getvalue())
+    ```
+    """
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise PiezojaxValueError(f"`data` must be bytes, got {type(data).__name__}")
+    p = Path(os.fspath(path)).expanduser().absolute()
+    try:
+        with atomic_file(p) as tmp:
+            with open(tmp, "wb") as f:
+                f.write(data)
+                f.flush()
+    except OSError as e:
+        raise PiezojaxValueError(f"cannot write {str(p)!r}: {_describe_os_error(e)}") from e
+    return p
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> Path:
+    """Write `text` to `path` atomically (see `atomic_write_bytes`).
+
+    **Arguments:**
+
+    - `path`: destination file.
+    - `text`: the string to write.
+    - `encoding`: text encoding, UTF-8 by default.
+
+    **Returns:**
+
+    The absolute `Path` written.
+
+    ```python
+    atomic_write_text("report.md", "# Fit report\\n")
+    ```
+    """
+    if not isinstance(text, str):
+        raise PiezojaxValueError(f"`text` must be a str, got {type(text).__name__}")
+    return atomic_write_bytes(path, text.encode(encoding))
+
+
+_RENAME_EXCHANGE = 2  # linux/fs.h
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap two paths with renameat2(RENAME_EXCHANGE) where the OS offers it (Linux ≥ 3.15)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd = -100
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    renameat2.restype = ctypes.c_int
+    rc = renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE)
+    return rc == 0
+
+
+@contextlib.contextmanager
+def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+    """Context manager yielding a temporary sibling directory that becomes `path` on normal exit.
+
+    Write every output file of a run into the yielded directory. On normal exit it is renamed to `path`. If `path`
+    already exists, that is an error (raised on entry, before any work) unless `overwrite=True`; then the two are
+    swapped — atomically with `renameat2(RENAME_EXCHANGE)` on Linux, otherwise by two renames with the old directory
+    parked at a hidden sibling `.NAME.tmp-old-*` in between — so at every instant at least one complete version
+    exists on disk, and the old one is deleted only after the new one is in place. On any exception (including
+    `KeyboardInterrupt`) the temporary directory is removed and `path` is left as it was.
+
+    **Arguments:**
+
+    - `path`: the output directory to create or replace.
+    - `overwrite`: allow replacing an existing directory at `path`.
+
+    **Returns:**
+
+    A context manager yielding the temporary directory as a `Path`.
+
+    ```python
+    with atomic_directory("runs/fit-01", overwrite=True) as d:
+        save_json(d / "result.json", result)
+    ```
+    """
+    p = check_writable(path)
+    if p.exists() and not p.is_dir():
+        raise PiezojaxValueError(f"cannot create directory {str(p)!r}: a file of that name exists")
+    if p.exists() and not overwrite:
+        raise PiezojaxValueError(f"output directory {str(p)!r} already exists; pass overwrite=True to replace it")
+    tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_TMP_TAG}"))
+    try:
+        # mkdtemp makes 0700 directories; give the result the mode a plain mkdir would.
+        os.chmod(tmp, 0o777 & ~_umask())
+        yield tmp
+        if p.exists() and not p.is_dir():
+            raise PiezojaxValueError(f"cannot create directory {str(p)!r}: a file of that name exists")
+        if not p.exists():
+            try:
+                os.rename(tmp, p)
+            except OSError as e:
+                raise PiezojaxValueError(
+                    f"cannot create directory {str(p)!r}: {_describe_os_error(e)}"
+                    + ("; it appeared while the run was being written" if p.exists() else "")
+                ) from e
+        elif not overwrite:
+            raise PiezojaxValueError(
+                f"output directory {str(p)!r} appeared while the run was being written; pass overwrite=True"
+            )
+        else:
+            if _exchange(tmp, p):
+                old = tmp  # after the exchange the temporary name holds the old directory
+            else:
+                old = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_TMP_TAG}old-"))
+                os.rmdir(old)
+                os.rename(p, old)
+                try:
+                    os.rename(tmp, p)
+                except BaseException:
+                    os.rename(old, p)
+                    raise
+            _fsync_directory(p.parent)
+            shutil.rmtree(old, ignore_errors=True)
+            return
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    _fsync_directory(p.parent)
+
+
+def to_jsonable(obj: Any, _where: str = "obj") -> Any:
+    """Convert `obj` to plain JSON types: numpy/JAX arrays → nested lists, scalars → Python numbers, NaN/±inf → None.
+
+    Mappings become objects (keys converted with `str`), tuples/lists become arrays, `Path` becomes a string.
+    Anything else raises `PiezojaxValueError` naming where it sits in `obj`.
+    """
+    if obj is None or isinstance(obj, bool | str):
+        return obj
+    if isinstance(obj, int) and not isinstance(obj, bool):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, Mapping):
+        return {str(k): to_jsonable(v, f"{_where}[{k!r}]") for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v, f"{_where}[{i}]") for i, v in enumerate(obj)]
+    if isinstance(obj, np.generic) or hasattr(obj, "__array__"):
+        try:
+            arr = np.asarray(obj)
+        except Exception as e:  # e.g. a tracer: not data
+            raise PiezojaxValueError(f"cannot convert {_where} ({type(obj).__name__}) to JSON: {e}") from e
+        if arr.dtype.kind == "b":
+            return arr.tolist()
+        if arr.dtype.kind in "iu":
+            return arr.tolist()
+        if arr.dtype.kind == "f":
+            out = arr.astype(np.float64).tolist()
+            return _nan_to_none(out)
+        if arr.dtype.kind in "US":
+            return arr.astype(str).tolist()
+        raise PiezojaxValueError(f"cannot convert {_where} (array of dtype {arr.dtype}) to JSON")
+    raise PiezojaxValueError(f"cannot convert {_where} of type {type(obj).__name__} to JSON")
+
+
+def _nan_to_none(x):
+    if isinstance(x, list):
+        return [_nan_to_none(v) for v in x]
+    return x if math.isfinite(x) else None
+
+
+def save_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> Path:
+    """Write `obj` as strict JSON to `path`, atomically.
+
+    numpy and JAX arrays and scalars are converted to (nested) lists and Python numbers; NaN and ±inf, which strict
+    JSON cannot hold, are written as `null` (so a failed metric reads back as `None`). See `to_jsonable`.
+
+    **Arguments:**
+
+    - `path`: destination file.
+    - `obj`: dicts, lists, tuples, strings, numbers, `None`, numpy/JAX arrays and scalars, `Path`s.
+    - `indent`: passed to `json.dumps`.
+
+    **Returns:**
+
+    The absolute `Path` written.
+
+    ```python
+    save_json("fit.json", {"rmse": np.float64(1e-7), "params": jnp.ones(3)})
+    ```
+    """
+    text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
+    return atomic_write_text(path, text + "\n")
