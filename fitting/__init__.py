@@ -1,1 +1,50 @@
-"""fitting: end-to-end calibration of piezojax models by nonlinear least squares."""
+"""fitting: end-to-end calibration of piezojax models by nonlinear least squares.
+
+- Data: `Experiment`, `Dataset`, `load_experiment`, `save_experiment` (CSV, NPZ, HDF5, MATLAB .mat).
+- Problem: `Problem` (model, data, free parameters, channel weights, weighted residuals), `Predictor` and the
+  built-in predictors.
+- Solver: `fit` / `solve` (optimistix Levenberg–Marquardt with a once-per-step forward-mode Jacobian), smoothing
+  continuation, failure reasons instead of NaN.
+- Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
+"""
+
+from ._data import (
+    CHANNELS as CHANNELS,
+    SUPPORTED_SUFFIXES as SUPPORTED_SUFFIXES,
+    UNITS as UNITS,
+    Dataset as Dataset,
+    Experiment as Experiment,
+    PaddedData as PaddedData,
+    load_experiment as load_experiment,
+    save_experiment as save_experiment,
+)
+from ._io import (
+    atomic_directory as atomic_directory,
+    atomic_file as atomic_file,
+    atomic_write_bytes as atomic_write_bytes,
+    atomic_write_text as atomic_write_text,
+    check_writable as check_writable,
+    save_json as save_json,
+    to_jsonable as to_jsonable,
+)
+from ._predict import (
+    ExperimentArrays as ExperimentArrays,
+    Predictor as Predictor,
+    actuator_predictor as actuator_predictor,
+    default_predictor as default_predictor,
+    hysteresis_predictor as hysteresis_predictor,
+    observer_predictor as observer_predictor,
+)
+from ._problem import (
+    Problem as Problem,
+    estimate_noise_std as estimate_noise_std,
+    free_mask as free_mask,
+    parameter_paths as parameter_paths,
+)
+from ._results import (
+    FitResult as FitResult,
+    error_metrics as error_metrics,
+    load_model as load_model,
+    load_summary as load_summary,
+)
+from ._solve import fit as fit, set_smoothing as set_smoothing, solve as solve

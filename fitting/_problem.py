@@ -1,0 +1,376 @@
+"""A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jaxtyping import Array, Float
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+from ._predict import ExperimentArrays, Predictor, default_predictor
+
+
+def _is_reparam(x) -> bool:
+    return isinstance(x, pj.AbstractReparam)
+
+
+def _key_name(k) -> str:
+    if isinstance(k, jtu.GetAttrKey):
+        return "." + k.name
+    if isinstance(k, jtu.SequenceKey):
+        return f"[{k.idx}]"
+    if isinstance(k, jtu.DictKey):
+        return f"[{k.key!r}]"
+    return "." + str(getattr(k, "name", getattr(k, "key", k)))
+
+
+def _path_string(path) -> str:
+    """`(GetAttrKey('hysteresis'), GetAttrKey('weights'))` → `"hysteresis.weights"` (reparam `.raw` dropped)."""
+    s = "".join(_key_name(k) for k in path)
+    return s[1:] if s.startswith(".") else s
+
+
+def parameter_paths(model) -> dict[str, Any]:
+    """The model's parameters by path (`"hysteresis.weights"`, `"dynamics.omega"`): every inexact array leaf, a
+    reparametrised one (`pj.Positive`, ...) listed once under the path of its wrapper, with its constrained value."""
+    out = {}
+    for path, leaf in jtu.tree_flatten_with_path(model, is_leaf=_is_reparam)[0]:
+        if _is_reparam(leaf):
+            out[_path_string(path)] = leaf.unwrap()
+        elif eqx.is_inexact_array(leaf):
+            out[_path_string(path)] = leaf
+    return out
+
+
+def _matches(path: str, selector: str) -> bool:
+    return path == selector or path.startswith(selector + ".") or path.startswith(selector + "[")
+
+
+def free_mask(model, free=None):
+    """Boolean pytree (same structure as `model`) marking the free array leaves.
+
+    `free`: `None` — every inexact array leaf except hysteresis `smoothing` (a continuation setting, not a
+    parameter); a callable `where(model)` returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of
+    path strings (see `parameter_paths`), each naming a parameter or a whole block (`"hysteresis"`).
+    """
+    flat, treedef = jtu.tree_flatten_with_path(model, is_leaf=_is_reparam)
+    paths = [_path_string(p) for p, _ in flat]
+    params = [(p, leaf) for p, (_, leaf) in zip(paths, flat) if _is_reparam(leaf) or eqx.is_inexact_array(leaf)]
+    if free is None:
+        chosen = {p for p, _ in params if not (p == "smoothing" or p.endswith(".smoothing"))}
+    elif callable(free):
+        marker = jtu.tree_map(lambda x: False, model)
+        try:
+            marked = eqx.tree_at(free, marker, replace_fn=lambda sub: jtu.tree_map(lambda _: True, sub))
+        except Exception as e:  # noqa: BLE001 - re-raised with the argument named
+            raise PiezojaxValueError(f"`free`: the selector could not be applied to the model ({e})") from e
+        mask = jtu.tree_map(lambda m, x: m is True and eqx.is_inexact_array(x), marked, model)
+        if not any(jtu.tree_leaves(mask)):
+            raise PiezojaxValueError("`free` selects no inexact array parameter: nothing to fit")
+        return mask
+    else:
+        if isinstance(free, str):
+            free = [free]
+        chosen = set()
+        available = [p for p, _ in params]
+        for sel in free:
+            if not isinstance(sel, str):
+                raise PiezojaxValueError(f"`free` entries must be parameter paths (str), got {sel!r}")
+            hits = [p for p in available if _matches(p, sel)]
+            if not hits:
+                raise PiezojaxValueError(
+                    f"`free`: no parameter {sel!r} in the model; available: {', '.join(available)}"
+                )
+            chosen.update(hits)
+    if not chosen:
+        raise PiezojaxValueError("`free` selects no parameter: nothing to fit")
+
+    def mark(path, leaf):
+        p = _path_string(path)
+        if _is_reparam(leaf):
+            return jtu.tree_map(lambda x: p in chosen and eqx.is_inexact_array(x), leaf)
+        return p in chosen and eqx.is_inexact_array(leaf)
+
+    del treedef
+    return jtu.tree_map_with_path(mark, model, is_leaf=_is_reparam)
+
+
+class _Group(eqx.Module):
+    """Experiments padded to a common length, with one dt and one set of channels."""
+
+    data: ExperimentArrays  # stacked (E, N)
+    targets: dict[str, Array]  # channel -> (E, N) measured
+    masks: dict[str, Array]  # channel -> (E, N) bool
+    dt: float = eqx.field(static=True)
+    index: tuple[int, ...] = eqx.field(static=True)  # experiment indices in the dataset
+    lengths: tuple[int, ...] = eqx.field(static=True)
+
+
+def estimate_noise_std(y: np.ndarray) -> float:
+    r"""Robust white-noise standard deviation of a sampled signal: the median absolute deviation of its second
+    differences, $\hat\sigma = \mathrm{MAD}(\Delta^2 y)/(0.6745\sqrt{6})$ (a smooth signal contributes little to
+    $\Delta^2 y$; white noise of variance $\sigma^2$ gives $\Delta^2$ of variance $6\sigma^2$)."""
+    d2 = np.diff(np.asarray(y, float), 2)
+    if d2.size == 0:
+        return 0.0
+    return float(np.median(np.abs(d2 - np.median(d2))) / (0.6745 * np.sqrt(6.0)))
+
+
+class Problem:
+    r"""A least-squares calibration problem: weighted residuals of a model's predictions over a dataset.
+
+    The residual vector stacks, for every experiment $e$, target channel $c$ and sample $k$,
+    $r_{eck} = w_c\,(\hat y_{ec}[k] - y_{ec}[k])$. Experiments with the same sample step and channels are padded to
+    a common length (inputs held at their last value; padded samples masked out — valid because every model is
+    causal) and simulated together under `jax.vmap`.
+
+    **Arguments:**
+
+    - `model`: any piezojax model (an equinox Module), possibly with reparametrised leaves (`pj.Positive`, ...).
+    - `dataset`: a `fitting.Dataset` (or a sequence of `fitting.Experiment`).
+    - `predictor`: a `fitting.Predictor` (default: `default_predictor(model)`).
+    - `targets`: channels to fit (default: every predicted channel the data contain, except the predictor's inputs).
+    - `free`: which parameters are fitted (see `free_mask`); the others stay frozen.
+    - `weights`: `"range"` (default: $w_c = 1/\mathrm{range}_c$ over all experiments, so each channel counts by
+      its relative error), `"noise"` ($w_c = 1/\hat\sigma_c$, the robust noise estimate of `estimate_noise_std`,
+      pooled over experiments — the statistically efficient choice for white noise), or a dict channel → $w_c$.
+      The standard errors use the residual variance, so they do not depend on the overall scale of the weights.
+    - `scales`: the scaling of the free parameters the solver works with, $\theta = s\,u$ (default $s = |\theta_0|$,
+      1 where $\theta_0 = 0$); the Levenberg–Marquardt damping is isotropic in $u$.
+    """
+
+    def __init__(
+        self,
+        model,
+        dataset,
+        *,
+        predictor: Predictor | None = None,
+        targets: Sequence[str] | None = None,
+        free=None,
+        weights: str | dict[str, float] = "range",
+        scales: Array | None = None,
+    ):
+        from ._data import Dataset
+
+        if not isinstance(dataset, Dataset):
+            dataset = Dataset(list(dataset))
+        if len(dataset) == 0:
+            raise PiezojaxValueError("`dataset` is empty")
+        self.dataset = dataset
+        self.predictor = default_predictor(model) if predictor is None else predictor
+        self.model = model
+        outputs, inputs = self.predictor.outputs, self.predictor.inputs
+        for exp in dataset:
+            missing = [c for c in inputs if not exp.has(c)]
+            if missing:
+                raise PiezojaxValueError(
+                    f"experiment {exp.name!r} lacks the channel(s) {missing} the model reads as input"
+                )
+        available = {c for exp in dataset for c in exp.channels}
+        if targets is None:
+            targets = [c for c in outputs if c in available and c not in inputs]
+            if not targets:
+                raise PiezojaxValueError(
+                    f"the dataset has none of the channels the model predicts ({', '.join(outputs)}); "
+                    f"it has: {', '.join(sorted(available)) or 'only t and v_in'}"
+                )
+        else:
+            targets = list(targets)
+            for c in targets:
+                if c not in outputs:
+                    raise PiezojaxValueError(f"`targets`: the model does not predict {c!r} (it predicts {outputs})")
+                if c in inputs:
+                    raise PiezojaxValueError(f"`targets`: {c!r} is an input of the predictor, not a target")
+                if c not in available:
+                    raise PiezojaxValueError(f"`targets`: no experiment in the dataset has the channel {c!r}")
+        self.targets = tuple(targets)
+        self.weights = self._weights(weights)
+
+        self.mask = free_mask(model, free)
+        free_part, self._frozen = eqx.partition(model, self.mask)
+        theta0, self._unravel = jax.flatten_util.ravel_pytree(free_part)
+        if theta0.size == 0:
+            raise PiezojaxValueError("`free` selects no array parameter: nothing to fit")
+        if scales is None:
+            scales = jnp.where(jnp.abs(theta0) > 0, jnp.abs(theta0), 1.0)
+        self.scales = jnp.asarray(scales, theta0.dtype)
+        self.theta0 = theta0
+        self.u0 = theta0 / self.scales
+        self._groups = self._make_groups()
+        self.num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in self._groups for m in g.masks.values()))
+        self.num_params = int(theta0.size)
+        if self.num_residuals <= self.num_params:
+            raise PiezojaxValueError(
+                f"{self.num_residuals} data points for {self.num_params} free parameters: the fit is underdetermined"
+            )
+
+    # ------------------------------------------------------------------ setup
+
+    def _weights(self, weights) -> dict[str, float]:
+        out = {}
+        for c in self.targets:
+            ys = [np.asarray(exp.channels[c]) for exp in self.dataset if exp.has(c)]
+            if isinstance(weights, dict):
+                if c not in weights:
+                    raise PiezojaxValueError(f"`weights` has no entry for the target channel {c!r}")
+                w = float(weights[c])
+            elif weights == "range":
+                rng = max(float(y.max()) for y in ys) - min(float(y.min()) for y in ys)
+                if not rng > 0:
+                    raise PiezojaxValueError(f"channel {c!r} is constant in every experiment: use explicit `weights`")
+                w = 1.0 / rng
+            elif weights == "noise":
+                sigma = float(np.sqrt(np.mean([estimate_noise_std(y) ** 2 for y in ys])))
+                rng = max(float(y.max()) for y in ys) - min(float(y.min()) for y in ys)
+                w = 1.0 / max(sigma, 1e-9 * rng, np.finfo(float).tiny)
+            else:
+                raise PiezojaxValueError(f'`weights` must be "range", "noise" or a dict, got {weights!r}')
+            if not (np.isfinite(w) and w > 0):
+                raise PiezojaxValueError(f"`weights[{c!r}]` must be finite and > 0, got {w}")
+            out[c] = w
+        return out
+
+    def _make_groups(self) -> list[_Group]:
+        dtype = self.theta0.dtype
+        keys: dict[tuple, list[int]] = {}
+        for i, exp in enumerate(self.dataset):
+            chans = tuple(c for c in self.targets if exp.has(c))
+            if not chans:
+                continue
+            key = (float(np.float32(exp.dt)), chans)
+            keys.setdefault(key, []).append(i)
+        if not keys:
+            raise PiezojaxValueError("no experiment has any of the target channels")
+        groups = []
+        inputs = self.predictor.inputs
+        for (_, chans), idx in keys.items():
+            exps = [self.dataset[i] for i in idx]
+            n = max(e.n for e in exps)
+            dt = float(np.mean([e.dt for e in exps]))
+
+            def pad(x, n=n):
+                x = np.asarray(x, float)
+                return np.concatenate([x, np.full(n - x.size, x[-1])])
+
+            data = ExperimentArrays(
+                t=jnp.asarray(np.stack([np.arange(n) * dt + e.t[0] for e in exps]), dtype),
+                dt=jnp.asarray(dt, dtype),
+                v_in=jnp.asarray(np.stack([pad(e.v_in) for e in exps]), dtype),
+                channels={c: jnp.asarray(np.stack([pad(e.channels[c]) for e in exps]), dtype) for c in inputs},
+            )
+            targets = {c: jnp.asarray(np.stack([pad(e.channels[c]) for e in exps]), dtype) for c in chans}
+            masks = {c: jnp.asarray(np.stack([np.arange(n) < e.n for e in exps])) for c in chans}
+            groups.append(_Group(data, targets, masks, dt, tuple(idx), tuple(e.n for e in exps)))
+        return groups
+
+    # ------------------------------------------------------------------ parameters
+
+    @property
+    def frozen(self):
+        """The frozen part of the model (free leaves replaced by `None`)."""
+        return self._frozen
+
+    def with_frozen(self, frozen) -> "Problem":
+        """A shallow copy with another frozen part of the same structure (e.g. another hysteresis `smoothing`)."""
+        import copy
+
+        new = copy.copy(self)
+        new._frozen = frozen
+        return new
+
+    def params(self, u: Float[Array, " p"], frozen=None):
+        """The (still reparametrised) model at scaled free parameters `u`."""
+        return eqx.combine(self._unravel(u * self.scales), self._frozen if frozen is None else frozen)
+
+    def model_at(self, u: Float[Array, " p"], frozen=None):
+        """The usable (unwrapped) model at scaled free parameters `u`."""
+        return pj.unwrap(self.params(u, frozen))
+
+    def parameter_names(self) -> list[str]:
+        """Names of the free physical parameters, one per scalar (`"hysteresis.weights[3]"`), in `physical` order."""
+        names = []
+        for path, value in self._free_physical_tree(self.model).items():
+            a = np.asarray(value)
+            names += [path] if a.ndim == 0 else [f"{path}[{j}]" for j in range(a.size)]
+        return names
+
+    def _free_physical_tree(self, params) -> dict[str, Array]:
+        flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
+        masks = jtu.tree_leaves(self.mask, is_leaf=_is_reparam)
+        out = {}
+        for (path, leaf), m in zip(flat, masks):
+            if _is_reparam(leaf):
+                if jtu.tree_leaves(m.raw) == [True]:
+                    out[_path_string(path)] = leaf.unwrap()
+            elif m is True:
+                out[_path_string(path)] = leaf
+        return out
+
+    def physical(self, u: Float[Array, " p"]) -> Float[Array, " q"]:
+        """The free parameters in physical (constrained) units, flattened in `parameter_names` order."""
+        tree = self._free_physical_tree(self.params(u))
+        return jnp.concatenate([jnp.ravel(v) for v in tree.values()])
+
+    # ------------------------------------------------------------------ residuals
+
+    def _group_predictions(self, model, g: _Group) -> dict[str, Array]:
+        d = g.data
+        axes = ExperimentArrays(t=0, dt=None, v_in=0, channels={c: 0 for c in d.channels})
+        return jax.vmap(lambda x: self.predictor(model, x), in_axes=(axes,))(d)
+
+    def predictions(self, u: Float[Array, " p"], frozen=None) -> list[dict[str, Array]]:
+        """Per group, the predicted channels `(E, N)` at `u` (padded)."""
+        model = self.model_at(u, frozen)
+        return [self._group_predictions(model, g) for g in self._groups]
+
+    def residuals(self, u: Float[Array, " p"], frozen=None) -> Float[Array, " m"]:
+        """The weighted residual vector at scaled parameters `u` (padded entries are exactly 0)."""
+        model = self.model_at(u, frozen)
+        parts = []
+        for g in self._groups:
+            pred = self._group_predictions(model, g)
+            for c in g.targets:
+                r = jnp.where(g.masks[c], (pred[c] - g.targets[c]) * self.weights[c], 0.0)
+                parts.append(jnp.ravel(r))
+        return jnp.concatenate(parts)
+
+    def jacobian_t(self, u: Float[Array, " p"], chunk: int | None = None, frozen=None) -> Float[Array, "p m"]:
+        """$J^\\top$ (shape `(p, m)`) by forward mode, `chunk` parameter directions at a time (`None`: all at
+        once). Peak memory ≈ `m × p` floats plus one chunk's forward-mode intermediates."""
+        eye = jnp.eye(u.size, dtype=u.dtype)
+        col = lambda e: jax.jvp(lambda x: self.residuals(x, frozen), (u,), (e,))[1]  # noqa: E731
+        if chunk is None or chunk >= u.size:
+            return jax.vmap(col)(eye)
+        return jax.lax.map(col, eye, batch_size=int(chunk))
+
+    def residual_fn(self, chunk: int | None = None) -> Callable[[Array, Any], Array]:
+        """`fn(u, frozen)`: `residuals` with a custom JVP (in `u` only; `frozen` is data) that forms $J^\\top$
+        once per linearisation point (by `jacobian_t`) and applies it as a matrix: `jax.linearize` (what
+        Levenberg–Marquardt does each step) then costs one Jacobian, and every later product with $J$ or $J^\\top$
+        is a matrix product."""
+
+        @jax.custom_jvp
+        def fn(u, frozen):
+            return self.residuals(u, frozen)
+
+        @fn.defjvp
+        def fn_jvp(primals, tangents):
+            (u, frozen), (du, _) = primals, tangents
+            return self.residuals(u, frozen), du @ self.jacobian_t(u, chunk, frozen)
+
+        return fn
+
+    def experiment_predictions(self, u: Float[Array, " p"], frozen=None) -> list[dict[str, np.ndarray]]:
+        """Per experiment (dataset order), the predicted target channels at `u`, unpadded NumPy arrays."""
+        out: list[dict[str, np.ndarray] | None] = [None] * len(self.dataset)
+        for g, pred in zip(self._groups, self.predictions(u, frozen)):
+            for j, (i, n) in enumerate(zip(g.index, g.lengths)):
+                out[i] = {c: np.asarray(pred[c][j, :n]) for c in g.targets}
+        return [o if o is not None else {} for o in out]

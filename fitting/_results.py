@@ -1,0 +1,235 @@
+"""Fit results: metrics, Gauss–Newton uncertainty, text report, figures, and atomic save/load."""
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+
+def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float]:
+    """RMSE (channel units), NRMSE and max |error| in % of the measured range."""
+    e = np.asarray(predicted, float) - np.asarray(measured, float)
+    rng = float(np.ptp(measured))
+    rmse = float(np.sqrt(np.mean(e**2)))
+    scale = rng if rng > 0 else float("nan")
+    return {
+        "rmse": rmse,
+        "nrmse_percent": 100 * rmse / scale,
+        "max_error_percent": 100 * float(np.max(np.abs(e))) / scale,
+        "range": rng,
+        "samples": int(e.size),
+    }
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What `fitting.solve`/`fitting.fit` return.
+
+    - `model`: the fitted model, ready to use (reparametrisations unwrapped); `params`: the same with its
+      reparametrisation wrappers (start a further fit from it).
+    - `success`, `reason`, `code`: convergence verdict and why (`"successful"`, `"max_steps_reached"`, `"stalled"`,
+      `"interrupted"`, `"nonfinite_initial"`, ...); `steps`, `accepted_steps`, `initial_cost`, `cost`
+      ($\\tfrac12\\|r\\|^2$ of the weighted residuals), `history` (accepted costs), `seconds`, `levels` (per
+      smoothing level).
+    - `parameter_names`, `values`, `std_errors`, `correlation`: the free parameters in physical units with their
+      Gauss–Newton standard errors $\\sqrt{\\mathrm{diag}(D\\,s^2(J^\\top J)^{+}D^\\top)}$, $s^2 = \\|r\\|^2/(m - p)$,
+      $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ (scaled).
+    - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
+    - `problem`: the `Problem` (not saved).
+    """
+
+    model: Any
+    params: Any
+    success: bool
+    reason: str
+    code: str
+    steps: int
+    accepted_steps: int
+    initial_cost: float
+    cost: float
+    history: list[float]
+    seconds: float
+    levels: list[dict]
+    parameter_names: list[str]
+    values: np.ndarray
+    std_errors: np.ndarray
+    correlation: np.ndarray
+    condition: float
+    num_residuals: int
+    num_params: int
+    metrics: dict[str, dict[str, dict[str, float]]]
+    problem: Any = dataclasses.field(repr=False, default=None)
+    u: Any = dataclasses.field(repr=False, default=None)
+
+    def summary(self) -> dict:
+        """A JSON-ready summary (everything but the models and the problem)."""
+        return {
+            "success": self.success,
+            "reason": self.reason,
+            "code": self.code,
+            "steps": self.steps,
+            "accepted_steps": self.accepted_steps,
+            "initial_cost": self.initial_cost,
+            "cost": self.cost,
+            "seconds": self.seconds,
+            "levels": self.levels,
+            "num_residuals": self.num_residuals,
+            "num_params": self.num_params,
+            "condition": self.condition,
+            "parameters": {
+                n: {"value": float(v), "std_error": float(s)}
+                for n, v, s in zip(self.parameter_names, self.values, self.std_errors)
+            },
+            "correlation": np.asarray(self.correlation).tolist(),
+            "metrics": self.metrics,
+            "history": self.history,
+        }
+
+    def report(self) -> str:
+        """A plain-text report: verdict, cost, parameters ± standard errors, strong correlations, errors."""
+        lines = [
+            f"fit {'converged' if self.success else 'FAILED'}: {self.reason}",
+            f"  steps {self.steps} ({self.accepted_steps} accepted), cost {self.initial_cost:.6e} -> "
+            f"{self.cost:.6e}, {self.seconds:.1f} s, {self.num_residuals} residuals, {self.num_params} parameters",
+            "parameters (value ± standard error):",
+        ]
+        w = max(len(n) for n in self.parameter_names)
+        for n, v, s in zip(self.parameter_names, self.values, self.std_errors):
+            rel = f"({100 * s / abs(v):.2g} %)" if v != 0 and np.isfinite(s) else ""
+            lines.append(f"  {n:<{w}}  {v: .6e} ± {s:.2e} {rel}")
+        c = np.asarray(self.correlation)
+        strong = [(abs(c[i, j]), i, j) for i in range(len(c)) for j in range(i) if abs(c[i, j]) > 0.99]
+        if strong:
+            lines.append("strongly correlated pairs (|corr| > 0.99):")
+            for a, i, j in sorted(strong, reverse=True)[:10]:
+                lines.append(f"  {self.parameter_names[i]} ~ {self.parameter_names[j]}: {c[i, j]:+.4f}")
+        lines.append("errors per experiment and channel (RMSE, NRMSE % of range, max % of range):")
+        for name, chans in self.metrics.items():
+            for ch, m in chans.items():
+                lines.append(
+                    f"  {name:<20} {ch:<13} {m['rmse']:.4e}  {m['nrmse_percent']:7.3f} %  "
+                    f"{m['max_error_percent']:7.3f} %"
+                )
+        return "\n".join(lines)
+
+    def predict(self, dataset) -> list[dict[str, np.ndarray]]:
+        """The fitted model's predicted target channels for each experiment of `dataset` (same predictor)."""
+        from ._problem import Problem
+
+        prob = Problem(
+            self.model,
+            dataset,
+            predictor=self.problem.predictor,
+            targets=self.problem.targets,
+            free=lambda m: m,
+            weights={c: 1.0 for c in self.problem.targets},
+        )
+        return prob.experiment_predictions(prob.u0)
+
+    def save(self, path, overwrite: bool = False, figures: bool = True, extra: dict | None = None) -> Path:
+        """Write `path/` atomically: `model.eqx` (equinox serialisation of `params`), `result.json` (summary plus
+        `extra`), `report.txt` and, with `figures=True`, PNG figures. Nothing appears at `path` unless all succeed."""
+        from ._io import atomic_directory, save_json
+
+        path = Path(path)
+        with atomic_directory(path, overwrite=overwrite) as tmp:
+            eqx.tree_serialise_leaves(tmp / "model.eqx", self.params)
+            summary = self.summary()
+            if extra:
+                summary.update(extra)
+            save_json(tmp / "result.json", summary)
+            (tmp / "report.txt").write_text(self.report() + "\n")
+            if figures:
+                from ._plots import plot_result
+
+                plot_result(self, tmp)
+        return path
+
+
+def load_model(path, like):
+    """Load the fitted (reparametrised) parameters saved by `FitResult.save` into a model of the structure of
+    `like` (e.g. the initial model), and return the unwrapped model."""
+    path = Path(path)
+    f = path / "model.eqx" if path.is_dir() else path
+    if not f.exists():
+        raise PiezojaxValueError(f"no saved model at {f}")
+    try:
+        params = eqx.tree_deserialise_leaves(f, like)
+    except Exception as e:  # noqa: BLE001
+        raise PiezojaxValueError(f"{f}: cannot load the model into the given structure ({e})") from e
+    return pj.unwrap(params)
+
+
+def load_summary(path) -> dict:
+    """The `result.json` summary saved by `FitResult.save`."""
+    f = Path(path) / "result.json"
+    if not f.exists():
+        raise PiezojaxValueError(f"no result summary at {f}")
+    return json.loads(f.read_text())
+
+
+def summarise(
+    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, jacobian_chunk=None
+) -> FitResult:
+    """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
+    frozen = problem.frozen
+    r = np.asarray(jax.jit(problem.residuals)(u, frozen))
+    jt = np.asarray(jax.jit(lambda x, f: problem.jacobian_t(x, jacobian_chunk, f))(u, frozen))
+    m, p = problem.num_residuals, problem.num_params
+    cost = 0.5 * float(np.sum(r**2))
+    s2 = 2 * cost / max(m - p, 1)
+    jtj = jt @ jt.T
+    evals, evecs = np.linalg.eigh(jtj)
+    top = evals.max() if evals.size else 0.0
+    keep = evals > top * 1e-14 * p
+    inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
+    cov_u = s2 * inv
+    d = np.asarray(jax.jacfwd(problem.physical)(u))
+    cov = d @ cov_u @ d.T
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    if not np.all(keep):
+        # directions the data do not determine: their standard error is infinite, not zero
+        null = evecs[:, ~keep]
+        undetermined = np.abs(d @ null).max(axis=1) > 1e-12 * np.maximum(np.abs(d).max(axis=1), 1e-300)
+        se = np.where(undetermined, np.inf, se)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    condition = float(top / evals.min()) if evals.size and evals.min() > 0 else float("inf")
+
+    preds = problem.experiment_predictions(u, frozen)
+    metrics = {}
+    for exp, pred in zip(problem.dataset, preds):
+        metrics[exp.name] = {c: error_metrics(pred[c], exp.channels[c]) for c in pred}
+    params = problem.params(u, frozen)
+    return FitResult(
+        model=pj.unwrap(params),
+        params=params,
+        success=bool(success),
+        reason=reason,
+        code=code,
+        steps=int(steps),
+        accepted_steps=int(accepted),
+        initial_cost=float(history[0]) if history else cost,
+        cost=cost,
+        history=[float(h) for h in history],
+        seconds=float(seconds),
+        levels=levels,
+        parameter_names=problem.parameter_names(),
+        values=np.asarray(problem.physical(u)),
+        std_errors=se,
+        correlation=corr,
+        condition=condition,
+        num_residuals=m,
+        num_params=p,
+        metrics=metrics,
+        problem=problem,
+        u=jnp.asarray(u),
+    )

@@ -1,0 +1,257 @@
+"""Levenberg–Marquardt over a `Problem`: stepped from Python (progress, Ctrl-C, failure reasons), with continuation."""
+
+import dataclasses
+import sys
+import time
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+from ._problem import Problem
+from ._results import FitResult, summarise
+
+
+def set_smoothing(model, smoothing: float):
+    """`model` with the `smoothing` of every hysteresis block that has one set to `smoothing` (0 = exact).
+
+    Works on reparametrised models; a model without smoothing is returned unchanged.
+    """
+
+    def is_h(x):
+        return isinstance(x, pj.AbstractHysteresis) and hasattr(x, "smoothing")
+
+    def replace(x):
+        if is_h(x) and eqx.is_array(x.smoothing):
+            return eqx.tree_at(lambda h: h.smoothing, x, jnp.asarray(smoothing, x.smoothing.dtype))
+        return x
+
+    return jtu.tree_map(replace, model, is_leaf=is_h)
+
+
+@dataclasses.dataclass
+class _Run:
+    u: jax.Array
+    steps: int
+    accepted: int
+    history: list
+    success: bool
+    reason: str
+    code: str
+
+
+def _levenberg_marquardt(
+    problem: Problem, u0, frozen, *, rtol, atol, max_steps, chunk, linear_solver, progress, label="", max_rejections=40
+) -> _Run:
+    fn_r = problem.residual_fn(chunk)
+
+    def fn(y, args):
+        return fn_r(y, args), None
+
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear_solver)
+    tags = frozenset()
+    f_struct = jax.eval_shape(lambda: fn_r(u0, frozen))
+    state = solver.init(fn, u0, frozen, {}, f_struct, None, tags)
+    dynamic, static = eqx.partition(state, eqx.is_array)
+
+    @jax.jit
+    def step(y, dynamic, args):
+        st = eqx.combine(dynamic, static)
+        y, st, _ = solver.step(fn, y, args, {}, st, tags)
+        terminate, result = solver.terminate(fn, y, args, {}, st, tags)
+        cost = 0.5 * jnp.sum(st.f_info.residual**2)
+        return (
+            y,
+            eqx.filter(st, eqx.is_array),
+            terminate,
+            result == optx.RESULTS.successful,
+            cost,
+            st.num_accepted_steps,
+            st.num_steps_since_acceptance,
+        )
+
+    # the initial point must be finite, else nothing downstream means anything
+    r0 = jax.jit(fn_r)(u0, frozen)
+    cost0 = 0.5 * float(jnp.sum(r0**2))
+    history = [cost0]
+    if not np.isfinite(cost0):
+        return _Run(
+            u0,
+            0,
+            0,
+            history,
+            False,
+            "the model's predictions are not finite at the initial parameters",
+            "nonfinite_initial",
+        )
+    y = u0
+    t0 = time.perf_counter()
+    k = accepted = 0
+    try:
+        for k in range(1, max_steps + 1):
+            y_new, dynamic, terminate, ok, cost, accepted, since = step(y, dynamic, frozen)
+            cost, accepted, since = float(cost), int(accepted), int(since)
+            if not bool(jnp.all(jnp.isfinite(y_new))):
+                return _Run(y, k, accepted, history, False, "the solver produced non-finite parameters", "nonfinite")
+            y = y_new
+            if k > 1 or accepted:
+                history.append(cost)
+            if progress:
+                print(
+                    f"\r  {label}step {k:4d}  cost {cost:.6e}  accepted {accepted:4d}  "
+                    f"{time.perf_counter() - t0:7.1f} s",
+                    end="",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if not bool(ok):
+                return _Run(
+                    y, k, accepted, history, False, "the linear solve of a damped step failed", "linear_solve_failed"
+                )
+            if bool(terminate):
+                if progress:
+                    print(file=sys.stderr)
+                return _Run(y, k, accepted, history, True, "converged (relative change below rtol/atol)", "successful")
+            if since >= max_rejections:
+                if progress:
+                    print(file=sys.stderr)
+                return _Run(
+                    y,
+                    k,
+                    accepted,
+                    history,
+                    False,
+                    f"no decrease of the cost in {since} consecutive trial steps (stalled or diverging)",
+                    "stalled",
+                )
+    except KeyboardInterrupt:
+        if progress:
+            print(file=sys.stderr)
+        return _Run(y, k, accepted, history, False, "interrupted by the user (Ctrl-C)", "interrupted")
+    if progress:
+        print(file=sys.stderr)
+    return _Run(
+        y, k, accepted, history, False, f"max_steps = {max_steps} reached before convergence", "max_steps_reached"
+    )
+
+
+def solve(
+    problem: Problem,
+    *,
+    smoothing: Sequence[float] | None = None,
+    max_steps: int = 200,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    jacobian_chunk: int | None = None,
+    linear_solver: lx.AbstractLinearSolver | None = None,
+    progress: bool = True,
+    throw: bool = False,
+) -> FitResult:
+    r"""Solve a `Problem` by Levenberg–Marquardt (`optimistix.LevenbergMarquardt`) from its initial model.
+
+    Each step linearises the weighted residuals once: the Jacobian is formed by forward mode (`jacobian_chunk`
+    parameter directions at a time) and kept as one $p \times m$ matrix (8 × 1e5 samples × 50 parameters in
+    float64: 320 MB). The Levenberg–Marquardt step solves $\min\|J\delta + r\|^2 + \lambda\|\delta\|^2$ with QR
+    (default) in the scaled parameters $u = \theta/s$ of the problem.
+
+    **Arguments:**
+
+    - `problem`: a `Problem`.
+    - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
+      exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
+    - `max_steps`: Levenberg–Marquardt steps per level; `rtol`, `atol`: optimistix's Cauchy termination tolerances
+      on the parameters and the residuals.
+    - `progress`: print step, cost, accepted steps and elapsed time on stderr.
+    - `throw`: raise `RuntimeError` with the reason when the fit fails, instead of returning a failed result.
+
+    **Returns:** a `FitResult`. A failed fit (max steps, stall, non-finite predictions, Ctrl-C) is returned with
+    `success=False`, its `reason`, and the last *accepted* parameters — never NaN parameters.
+
+    Not itself jit-able (a Python loop, so that progress and Ctrl-C work); each step is one compiled call.
+    """
+    if linear_solver is None:
+        linear_solver = lx.QR()
+    if max_steps < 1:
+        raise PiezojaxValueError(f"`max_steps` must be >= 1, got {max_steps}")
+    levels = [None] if smoothing is None else list(smoothing)
+    if not levels:
+        raise PiezojaxValueError("`smoothing` must list at least one level (or be None)")
+    for s in levels:
+        if s is not None and not (np.isfinite(s) and s >= 0):
+            raise PiezojaxValueError(f"`smoothing` levels must be finite and >= 0, got {s}")
+    t0 = time.perf_counter()
+    u = problem.u0
+    frozen = problem.frozen
+    runs = []
+    for i, s in enumerate(levels):
+        if s is not None:
+            frozen = set_smoothing(frozen, s)
+        label = f"[smoothing {s:g}] " if s is not None else ""
+        run = _levenberg_marquardt(
+            problem,
+            u,
+            frozen,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            chunk=jacobian_chunk,
+            linear_solver=linear_solver,
+            progress=progress,
+            label=label,
+        )
+        runs.append((s, run))
+        u = run.u
+        if not run.success and run.code in ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed"):
+            break
+    final = runs[-1][1]
+    # continuation levels other than the last may stop at max_steps without failing the fit
+    success = final.success and len(runs) == len(levels)
+    reason = final.reason if len(runs) == len(levels) or not final.success else final.reason
+    result = summarise(
+        problem.with_frozen(frozen),
+        u,
+        success=success,
+        reason=reason,
+        code=final.code,
+        steps=sum(r.steps for _, r in runs),
+        accepted=sum(r.accepted for _, r in runs),
+        history=[c for _, r in runs for c in r.history],
+        seconds=time.perf_counter() - t0,
+        levels=[{"smoothing": s, "steps": r.steps, "cost": r.history[-1], "reason": r.reason} for s, r in runs],
+        jacobian_chunk=jacobian_chunk,
+    )
+    if throw and not result.success:
+        raise RuntimeError(f"fit failed: {result.reason}")
+    return result
+
+
+def fit(
+    model,
+    dataset,
+    *,
+    predictor=None,
+    targets=None,
+    free=None,
+    weights="range",
+    scales=None,
+    **solve_options,
+) -> FitResult:
+    """Calibrate `model` on `dataset` by weighted least squares: `solve(Problem(model, dataset, ...), ...)`.
+
+    See `Problem` for `predictor`, `targets`, `free`, `weights`, `scales` and `solve` for the solver options.
+
+    ```python
+    result = fitting.fit(actuator, dataset, free=["hysteresis", "dynamics"], smoothing=(0.05, 0.0))
+    print(result.report())
+    ```
+    """
+    problem = Problem(model, dataset, predictor=predictor, targets=targets, free=free, weights=weights, scales=scales)
+    return solve(problem, **solve_options)
