@@ -18,7 +18,7 @@ def plot_result(result, folder, max_experiments: int = 8) -> list[Path]:
 
     folder = Path(folder)
     problem = result.problem
-    preds = problem.experiment_predictions(result.u, problem.frozen)
+    preds = problem.experiment_predictions(result.u)
     written = []
     for exp, pred in list(zip(problem.dataset, preds))[:max_experiments]:
         chans = list(pred)

@@ -1,18 +1,17 @@
 """A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
 import jax
-import jax.flatten_util
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
+from piezojax._checks import PiezojaxValueError, common_float_dtype
 
 from ._predict import ExperimentArrays, Predictor, default_predictor
 
@@ -108,9 +107,92 @@ class _Group(eqx.Module):
     data: ExperimentArrays  # stacked (E, N)
     targets: dict[str, Array]  # channel -> (E, N) measured
     masks: dict[str, Array]  # channel -> (E, N) bool
-    dt: float = eqx.field(static=True)
     index: tuple[int, ...] = eqx.field(static=True)  # experiment indices in the dataset
     lengths: tuple[int, ...] = eqx.field(static=True)
+
+
+class _Unflatten(eqx.Module):
+    """Inverse of flattening the free leaves (hashable, so that compiled steps are reused across problems)."""
+
+    treedef: Any = eqx.field(static=True)
+    shapes: tuple[tuple[int, ...], ...] = eqx.field(static=True)
+
+    def __call__(self, theta):
+        leaves, i = [], 0
+        for shape in self.shapes:
+            size = int(np.prod(shape, dtype=int))
+            leaves.append(theta[i : i + size].reshape(shape))
+            i += size
+        return jtu.tree_unflatten(self.treedef, leaves)
+
+
+class ProblemCore(eqx.Module):
+    """Everything the residuals depend on, as one equinox Module: arrays are leaves (data, frozen parameters,
+    scales), the structure is static. Two problems with the same structure and shapes share compiled code."""
+
+    groups: tuple[_Group, ...]
+    frozen: Any
+    scales: Array
+    unflatten: _Unflatten
+    predictor: Predictor
+    weights: tuple[tuple[str, float], ...] = eqx.field(static=True)
+    chunk: int | None = eqx.field(static=True)
+
+    def params(self, u):
+        return eqx.combine(self.unflatten(u * self.scales), self.frozen)
+
+    def model_at(self, u):
+        return pj.unwrap(self.params(u))
+
+    def group_predictions(self, model, g: _Group) -> dict[str, Array]:
+        d = g.data
+        axes = ExperimentArrays(t=0, dt=None, v_in=0, channels={c: 0 for c in d.channels})
+        return jax.vmap(lambda x: self.predictor(model, x), in_axes=(axes,))(d)
+
+    def predictions(self, u) -> list[dict[str, Array]]:
+        model = self.model_at(u)
+        return [self.group_predictions(model, g) for g in self.groups]
+
+    def residuals(self, u):
+        weights = dict(self.weights)
+        parts = []
+        for g, pred in zip(self.groups, self.predictions(u)):
+            for c in g.targets:
+                r = jnp.where(g.masks[c], (pred[c] - g.targets[c]) * weights[c], 0.0)
+                parts.append(jnp.ravel(r))
+        return jnp.concatenate(parts)
+
+    def jacobian_t(self, u):
+        eye = jnp.eye(u.size, dtype=u.dtype)
+        col = lambda e: jax.jvp(self.residuals, (u,), (e,))[1]  # noqa: E731
+        if self.chunk is None or self.chunk >= u.size:
+            return jax.vmap(col)(eye)
+        return jax.lax.map(col, eye, batch_size=int(self.chunk))
+
+
+@jax.custom_jvp
+def linearised_residuals(u, core: ProblemCore):
+    """`core.residuals(u)` with a custom JVP (in `u` only; `core` is data): the JVP forms $J^\\top$ once by
+    forward mode (`core.chunk` directions at a time) and applies it as a matrix, so `jax.linearize` — what
+    Levenberg–Marquardt does each step — costs one Jacobian, and every later product with $J$ or $J^\\top$ is a
+    matrix product."""
+    return core.residuals(u)
+
+
+@linearised_residuals.defjvp
+def _linearised_residuals_jvp(primals, tangents):
+    (u, core), (du, _) = primals, tangents
+    return core.residuals(u), du @ core.jacobian_t(u)
+
+
+@eqx.filter_jit
+def _residuals_and_jacobian(core: ProblemCore, u):
+    return core.residuals(u), core.jacobian_t(u)
+
+
+@eqx.filter_jit
+def _predictions(core: ProblemCore, u):
+    return core.predictions(u)
 
 
 def estimate_noise_std(y: np.ndarray) -> float:
@@ -144,6 +226,8 @@ class Problem:
       The standard errors use the residual variance, so they do not depend on the overall scale of the weights.
     - `scales`: the scaling of the free parameters the solver works with, $\theta = s\,u$ (default $s = |\theta_0|$,
       1 where $\theta_0 = 0$); the Levenberg–Marquardt damping is isotropic in $u$.
+    - `jacobian_chunk`: forward-mode directions evaluated at once when forming the Jacobian (`None`: all); lowers
+      the peak memory of the forward-mode intermediates, not of the Jacobian itself ($m \times p$ floats).
     """
 
     def __init__(
@@ -156,6 +240,7 @@ class Problem:
         free=None,
         weights: str | dict[str, float] = "range",
         scales: Array | None = None,
+        jacobian_chunk: int | None = None,
     ):
         from ._data import Dataset
 
@@ -193,18 +278,27 @@ class Problem:
         self.targets = tuple(targets)
         self.weights = self._weights(weights)
 
+        if jacobian_chunk is not None and not (isinstance(jacobian_chunk, int) and jacobian_chunk >= 1):
+            raise PiezojaxValueError(f"`jacobian_chunk` must be a positive int or None, got {jacobian_chunk!r}")
         self.mask = free_mask(model, free)
-        free_part, self._frozen = eqx.partition(model, self.mask)
-        theta0, self._unravel = jax.flatten_util.ravel_pytree(free_part)
-        if theta0.size == 0:
+        free_part, frozen = eqx.partition(model, self.mask)
+        leaves, treedef = jtu.tree_flatten(free_part)
+        if not leaves:
             raise PiezojaxValueError("`free` selects no array parameter: nothing to fit")
+        dtype = common_float_dtype(*leaves)
+        theta0 = jnp.concatenate([jnp.ravel(jnp.asarray(x, dtype)) for x in leaves])
+        unflatten = _Unflatten(treedef, tuple(tuple(x.shape) for x in leaves))
         if scales is None:
             scales = jnp.where(jnp.abs(theta0) > 0, jnp.abs(theta0), 1.0)
-        self.scales = jnp.asarray(scales, theta0.dtype)
+        scales = jnp.asarray(scales, theta0.dtype)
+        if scales.shape != theta0.shape or not bool(jnp.all(jnp.isfinite(scales) & (scales > 0))):
+            raise PiezojaxValueError(f"`scales` must be {theta0.shape[0]} finite values > 0")
         self.theta0 = theta0
-        self.u0 = theta0 / self.scales
-        self._groups = self._make_groups()
-        self.num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in self._groups for m in g.masks.values()))
+        self.u0 = theta0 / scales
+        groups = self._make_groups(dtype)
+        self.core = ProblemCore(tuple(groups), frozen, scales, unflatten, self.predictor,
+                                tuple(self.weights.items()), jacobian_chunk)
+        self.num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in groups for m in g.masks.values()))
         self.num_params = int(theta0.size)
         if self.num_residuals <= self.num_params:
             raise PiezojaxValueError(
@@ -237,8 +331,7 @@ class Problem:
             out[c] = w
         return out
 
-    def _make_groups(self) -> list[_Group]:
-        dtype = self.theta0.dtype
+    def _make_groups(self, dtype) -> list[_Group]:
         keys: dict[tuple, list[int]] = {}
         for i, exp in enumerate(self.dataset):
             chans = tuple(c for c in self.targets if exp.has(c))
@@ -267,7 +360,7 @@ class Problem:
             )
             targets = {c: jnp.asarray(np.stack([pad(e.channels[c]) for e in exps]), dtype) for c in chans}
             masks = {c: jnp.asarray(np.stack([np.arange(n) < e.n for e in exps])) for c in chans}
-            groups.append(_Group(data, targets, masks, dt, tuple(idx), tuple(e.n for e in exps)))
+            groups.append(_Group(data, targets, masks, tuple(idx), tuple(e.n for e in exps)))
         return groups
 
     # ------------------------------------------------------------------ parameters
@@ -275,23 +368,27 @@ class Problem:
     @property
     def frozen(self):
         """The frozen part of the model (free leaves replaced by `None`)."""
-        return self._frozen
+        return self.core.frozen
 
     def with_frozen(self, frozen) -> "Problem":
         """A shallow copy with another frozen part of the same structure (e.g. another hysteresis `smoothing`)."""
         import copy
 
         new = copy.copy(self)
-        new._frozen = frozen
+        new.core = eqx.tree_at(lambda c: c.frozen, self.core, frozen)
         return new
 
-    def params(self, u: Float[Array, " p"], frozen=None):
-        """The (still reparametrised) model at scaled free parameters `u`."""
-        return eqx.combine(self._unravel(u * self.scales), self._frozen if frozen is None else frozen)
+    @property
+    def scales(self) -> Array:
+        return self.core.scales
 
-    def model_at(self, u: Float[Array, " p"], frozen=None):
+    def params(self, u: Float[Array, " p"]):
+        """The (still reparametrised) model at scaled free parameters `u`."""
+        return self.core.params(u)
+
+    def model_at(self, u: Float[Array, " p"]):
         """The usable (unwrapped) model at scaled free parameters `u`."""
-        return pj.unwrap(self.params(u, frozen))
+        return self.core.model_at(u)
 
     def parameter_names(self) -> list[str]:
         """Names of the free physical parameters, one per scalar (`"hysteresis.weights[3]"`), in `physical` order."""
@@ -320,57 +417,23 @@ class Problem:
 
     # ------------------------------------------------------------------ residuals
 
-    def _group_predictions(self, model, g: _Group) -> dict[str, Array]:
-        d = g.data
-        axes = ExperimentArrays(t=0, dt=None, v_in=0, channels={c: 0 for c in d.channels})
-        return jax.vmap(lambda x: self.predictor(model, x), in_axes=(axes,))(d)
-
-    def predictions(self, u: Float[Array, " p"], frozen=None) -> list[dict[str, Array]]:
-        """Per group, the predicted channels `(E, N)` at `u` (padded)."""
-        model = self.model_at(u, frozen)
-        return [self._group_predictions(model, g) for g in self._groups]
-
-    def residuals(self, u: Float[Array, " p"], frozen=None) -> Float[Array, " m"]:
+    def residuals(self, u: Float[Array, " p"]) -> Float[Array, " m"]:
         """The weighted residual vector at scaled parameters `u` (padded entries are exactly 0)."""
-        model = self.model_at(u, frozen)
-        parts = []
-        for g in self._groups:
-            pred = self._group_predictions(model, g)
-            for c in g.targets:
-                r = jnp.where(g.masks[c], (pred[c] - g.targets[c]) * self.weights[c], 0.0)
-                parts.append(jnp.ravel(r))
-        return jnp.concatenate(parts)
+        return self.core.residuals(u)
 
-    def jacobian_t(self, u: Float[Array, " p"], chunk: int | None = None, frozen=None) -> Float[Array, "p m"]:
-        """$J^\\top$ (shape `(p, m)`) by forward mode, `chunk` parameter directions at a time (`None`: all at
-        once). Peak memory ≈ `m × p` floats plus one chunk's forward-mode intermediates."""
-        eye = jnp.eye(u.size, dtype=u.dtype)
-        col = lambda e: jax.jvp(lambda x: self.residuals(x, frozen), (u,), (e,))[1]  # noqa: E731
-        if chunk is None or chunk >= u.size:
-            return jax.vmap(col)(eye)
-        return jax.lax.map(col, eye, batch_size=int(chunk))
+    def jacobian_t(self, u: Float[Array, " p"]) -> Float[Array, "p m"]:
+        """$J^\\top$ (shape `(p, m)`) by forward mode, `jacobian_chunk` directions at a time. Peak memory ≈ `m × p`
+        floats plus one chunk's forward-mode intermediates."""
+        return self.core.jacobian_t(u)
 
-    def residual_fn(self, chunk: int | None = None) -> Callable[[Array, Any], Array]:
-        """`fn(u, frozen)`: `residuals` with a custom JVP (in `u` only; `frozen` is data) that forms $J^\\top$
-        once per linearisation point (by `jacobian_t`) and applies it as a matrix: `jax.linearize` (what
-        Levenberg–Marquardt does each step) then costs one Jacobian, and every later product with $J$ or $J^\\top$
-        is a matrix product."""
+    def residuals_and_jacobian(self, u: Float[Array, " p"]) -> tuple[Array, Array]:
+        """`(residuals(u), jacobian_t(u))`, compiled (cached across problems of the same structure)."""
+        return _residuals_and_jacobian(self.core, u)
 
-        @jax.custom_jvp
-        def fn(u, frozen):
-            return self.residuals(u, frozen)
-
-        @fn.defjvp
-        def fn_jvp(primals, tangents):
-            (u, frozen), (du, _) = primals, tangents
-            return self.residuals(u, frozen), du @ self.jacobian_t(u, chunk, frozen)
-
-        return fn
-
-    def experiment_predictions(self, u: Float[Array, " p"], frozen=None) -> list[dict[str, np.ndarray]]:
+    def experiment_predictions(self, u: Float[Array, " p"]) -> list[dict[str, np.ndarray]]:
         """Per experiment (dataset order), the predicted target channels at `u`, unpadded NumPy arrays."""
         out: list[dict[str, np.ndarray] | None] = [None] * len(self.dataset)
-        for g, pred in zip(self._groups, self.predictions(u, frozen)):
+        for g, pred in zip(self.core.groups, _predictions(self.core, u)):
             for j, (i, n) in enumerate(zip(g.index, g.lengths)):
                 out[i] = {c: np.asarray(pred[c][j, :n]) for c in g.targets}
         return [o if o is not None else {} for o in out]

@@ -177,12 +177,10 @@ def load_summary(path) -> dict:
 
 
 def summarise(
-    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, jacobian_chunk=None
+    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels
 ) -> FitResult:
     """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
-    frozen = problem.frozen
-    r = np.asarray(jax.jit(problem.residuals)(u, frozen))
-    jt = np.asarray(jax.jit(lambda x, f: problem.jacobian_t(x, jacobian_chunk, f))(u, frozen))
+    r, jt = (np.asarray(x) for x in problem.residuals_and_jacobian(u))
     m, p = problem.num_residuals, problem.num_params
     cost = 0.5 * float(np.sum(r**2))
     s2 = 2 * cost / max(m - p, 1)
@@ -204,11 +202,11 @@ def summarise(
         corr = cov / np.outer(se, se)
     condition = float(top / evals.min()) if evals.size and evals.min() > 0 else float("inf")
 
-    preds = problem.experiment_predictions(u, frozen)
+    preds = problem.experiment_predictions(u)
     metrics = {}
     for exp, pred in zip(problem.dataset, preds):
         metrics[exp.name] = {c: error_metrics(pred[c], exp.channels[c]) for c in pred}
-    params = problem.params(u, frozen)
+    params = problem.params(u)
     return FitResult(
         model=pj.unwrap(params),
         params=params,

@@ -1,6 +1,7 @@
 """Levenberg–Marquardt over a `Problem`: stepped from Python (progress, Ctrl-C, failure reasons), with continuation."""
 
 import dataclasses
+import functools
 import sys
 import time
 from collections.abc import Sequence
@@ -16,7 +17,7 @@ import optimistix as optx
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._problem import Problem
+from ._problem import Problem, linearised_residuals
 from ._results import FitResult, summarise
 
 
@@ -48,38 +49,47 @@ class _Run:
     code: str
 
 
-def _levenberg_marquardt(
-    problem: Problem, u0, frozen, *, rtol, atol, max_steps, chunk, linear_solver, progress, label="", max_rejections=40
-) -> _Run:
-    fn_r = problem.residual_fn(chunk)
+@functools.lru_cache(maxsize=16)
+def _solver(rtol: float, atol: float, linear_solver) -> optx.LevenbergMarquardt:
+    # one solver object per setting, so that compiled steps are found again in the cache
+    return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear_solver)
 
-    def fn(y, args):
-        return fn_r(y, args), None
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=linear_solver)
-    tags = frozenset()
-    f_struct = jax.eval_shape(lambda: fn_r(u0, frozen))
-    state = solver.init(fn, u0, frozen, {}, f_struct, None, tags)
-    dynamic, static = eqx.partition(state, eqx.is_array)
+def _fn(y, core):
+    return linearised_residuals(y, core), None
 
-    @jax.jit
-    def step(y, dynamic, args):
-        st = eqx.combine(dynamic, static)
-        y, st, _ = solver.step(fn, y, args, {}, st, tags)
-        terminate, result = solver.terminate(fn, y, args, {}, st, tags)
-        cost = 0.5 * jnp.sum(st.f_info.residual**2)
-        return (
-            y,
-            eqx.filter(st, eqx.is_array),
-            terminate,
-            result == optx.RESULTS.successful,
-            cost,
-            st.num_accepted_steps,
-            st.num_steps_since_acceptance,
-        )
 
+_TAGS = frozenset()
+
+
+def _static_state(solver, core, y):
+    f_struct = jax.eval_shape(linearised_residuals, y, core)
+    state = eqx.filter_eval_shape(solver.init, _fn, y, core, {}, f_struct, None, _TAGS)
+    return eqx.filter(state, eqx.is_array_like, inverse=True)
+
+
+@eqx.filter_jit
+def _lm_init(solver, core, y):
+    f_struct = jax.eval_shape(linearised_residuals, y, core)
+    state = solver.init(_fn, y, core, {}, f_struct, None, _TAGS)
+    return eqx.filter(state, eqx.is_array), linearised_residuals(y, core)
+
+
+@eqx.filter_jit
+def _lm_step(solver, core, y, dynamic):
+    st = eqx.combine(dynamic, _static_state(solver, core, y))
+    y, st, _ = solver.step(_fn, y, core, {}, st, _TAGS)
+    terminate, result = solver.terminate(_fn, y, core, {}, st, _TAGS)
+    cost = 0.5 * jnp.sum(st.f_info.residual**2)
+    return (y, eqx.filter(st, eqx.is_array), terminate, result == optx.RESULTS.successful, cost,
+            st.num_accepted_steps, st.num_steps_since_acceptance)
+
+
+def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, max_steps, linear_solver, progress,
+                         label="", max_rejections=40) -> _Run:
+    solver = _solver(float(rtol), float(atol), linear_solver)
+    dynamic, r0 = _lm_init(solver, core, u0)
     # the initial point must be finite, else nothing downstream means anything
-    r0 = jax.jit(fn_r)(u0, frozen)
     cost0 = 0.5 * float(jnp.sum(r0**2))
     history = [cost0]
     if not np.isfinite(cost0):
@@ -97,7 +107,7 @@ def _levenberg_marquardt(
     k = accepted = 0
     try:
         for k in range(1, max_steps + 1):
-            y_new, dynamic, terminate, ok, cost, accepted, since = step(y, dynamic, frozen)
+            y_new, dynamic, terminate, ok, cost, accepted, since = _lm_step(solver, core, y, dynamic)
             cost, accepted, since = float(cost), int(accepted), int(since)
             if not bool(jnp.all(jnp.isfinite(y_new))):
                 return _Run(y, k, accepted, history, False, "the solver produced non-finite parameters", "nonfinite")
@@ -150,7 +160,6 @@ def solve(
     max_steps: int = 200,
     rtol: float = 1e-8,
     atol: float = 1e-10,
-    jacobian_chunk: int | None = None,
     linear_solver: lx.AbstractLinearSolver | None = None,
     progress: bool = True,
     throw: bool = False,
@@ -191,30 +200,21 @@ def solve(
     u = problem.u0
     frozen = problem.frozen
     runs = []
-    for i, s in enumerate(levels):
+    for s in levels:
         if s is not None:
             frozen = set_smoothing(frozen, s)
         label = f"[smoothing {s:g}] " if s is not None else ""
-        run = _levenberg_marquardt(
-            problem,
-            u,
-            frozen,
-            rtol=rtol,
-            atol=atol,
-            max_steps=max_steps,
-            chunk=jacobian_chunk,
-            linear_solver=linear_solver,
-            progress=progress,
-            label=label,
-        )
+        core = problem.with_frozen(frozen).core
+        run = _levenberg_marquardt(problem, u, core, rtol=rtol, atol=atol, max_steps=max_steps,
+                                   linear_solver=linear_solver, progress=progress, label=label)
         runs.append((s, run))
         u = run.u
         if not run.success and run.code in ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed"):
             break
     final = runs[-1][1]
-    # continuation levels other than the last may stop at max_steps without failing the fit
+    # earlier continuation levels may stop at max_steps without failing the fit
     success = final.success and len(runs) == len(levels)
-    reason = final.reason if len(runs) == len(levels) or not final.success else final.reason
+    reason = final.reason
     result = summarise(
         problem.with_frozen(frozen),
         u,
@@ -226,7 +226,6 @@ def solve(
         history=[c for _, r in runs for c in r.history],
         seconds=time.perf_counter() - t0,
         levels=[{"smoothing": s, "steps": r.steps, "cost": r.history[-1], "reason": r.reason} for s, r in runs],
-        jacobian_chunk=jacobian_chunk,
     )
     if throw and not result.success:
         raise RuntimeError(f"fit failed: {result.reason}")
@@ -242,6 +241,7 @@ def fit(
     free=None,
     weights="range",
     scales=None,
+    jacobian_chunk=None,
     **solve_options,
 ) -> FitResult:
     """Calibrate `model` on `dataset` by weighted least squares: `solve(Problem(model, dataset, ...), ...)`.
