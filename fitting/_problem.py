@@ -191,6 +191,11 @@ def _residuals_and_jacobian(core: ProblemCore, u):
 
 
 @eqx.filter_jit
+def _residuals(core: ProblemCore, u):
+    return core.residuals(u)
+
+
+@eqx.filter_jit
 def _predictions(core: ProblemCore, u):
     return core.predictions(u)
 
@@ -418,8 +423,9 @@ class Problem:
     # ------------------------------------------------------------------ residuals
 
     def residuals(self, u: Float[Array, " p"]) -> Float[Array, " m"]:
-        """The weighted residual vector at scaled parameters `u` (padded entries are exactly 0)."""
-        return self.core.residuals(u)
+        """The weighted residual vector at scaled parameters `u` (padded entries are exactly 0); compiled, and
+        differentiable in `u`."""
+        return _residuals(self.core, u)
 
     def jacobian_t(self, u: Float[Array, " p"]) -> Float[Array, "p m"]:
         """$J^\\top$ (shape `(p, m)`) by forward mode, `jacobian_chunk` directions at a time. Peak memory ≈ `m × p`

@@ -41,7 +41,9 @@ class FitResult:
       smoothing level).
     - `parameter_names`, `values`, `std_errors`, `correlation`: the free parameters in physical units with their
       Gauss–Newton standard errors $\\sqrt{\\mathrm{diag}(D\\,s^2(J^\\top J)^{+}D^\\top)}$, $s^2 = \\|r\\|^2/(m - p)$,
-      $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ (scaled).
+      $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ (scaled);
+      `gradient_cosine`: $\\max_i |\\cos(r, J_{:,i})|$, ≈ 0 at a stationary point (a fit that stops with it above
+      `gtol` is reported as failed, code `"not_stationary"`).
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
     - `problem`: the `Problem` (not saved).
     """
@@ -63,6 +65,7 @@ class FitResult:
     std_errors: np.ndarray
     correlation: np.ndarray
     condition: float
+    gradient_cosine: float
     num_residuals: int
     num_params: int
     metrics: dict[str, dict[str, dict[str, float]]]
@@ -84,6 +87,7 @@ class FitResult:
             "num_residuals": self.num_residuals,
             "num_params": self.num_params,
             "condition": self.condition,
+            "gradient_cosine": self.gradient_cosine,
             "parameters": {
                 n: {"value": float(v), "std_error": float(s)}
                 for n, v, s in zip(self.parameter_names, self.values, self.std_errors)
@@ -177,7 +181,7 @@ def load_summary(path) -> dict:
 
 
 def summarise(
-    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels
+    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2
 ) -> FitResult:
     """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
     r, jt = (np.asarray(x) for x in problem.residuals_and_jacobian(u))
@@ -201,6 +205,16 @@ def summarise(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     condition = float(top / evals.min()) if evals.size and evals.min() > 0 else float("inf")
+    # first-order optimality (MINPACK's gtol test): the largest cosine between the residual and a Jacobian column
+    col_norms = np.sqrt(np.sum(jt**2, axis=1))
+    rnorm = np.sqrt(np.sum(r**2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = np.abs(jt @ r) / (col_norms * rnorm)
+    gradient_cosine = float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
+    if success and gradient_cosine > gtol:
+        success, code = False, "not_stationary"
+        reason = (f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
+                  f"{gtol:g}): the trust region shrank without a decrease (non-finite or non-smooth model?)")
 
     preds = problem.experiment_predictions(u)
     metrics = {}
@@ -225,6 +239,7 @@ def summarise(
         std_errors=se,
         correlation=corr,
         condition=condition,
+        gradient_cosine=gradient_cosine,
         num_residuals=m,
         num_params=p,
         metrics=metrics,

@@ -163,6 +163,7 @@ def solve(
     linear_solver: lx.AbstractLinearSolver | None = None,
     progress: bool = True,
     throw: bool = False,
+    gtol: float = 1e-2,
 ) -> FitResult:
     r"""Solve a `Problem` by Levenberg–Marquardt (`optimistix.LevenbergMarquardt`) from its initial model.
 
@@ -179,6 +180,8 @@ def solve(
     - `max_steps`: Levenberg–Marquardt steps per level; `rtol`, `atol`: optimistix's Cauchy termination tolerances
       on the parameters and the residuals.
     - `progress`: print step, cost, accepted steps and elapsed time on stderr.
+    - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` (not a stationary point: e.g. the trust
+      region shrank to nothing around non-finite predictions) is reported as failed (`"not_stationary"`).
     - `throw`: raise `RuntimeError` with the reason when the fit fails, instead of returning a failed result.
 
     **Returns:** a `FitResult`. A failed fit (max steps, stall, non-finite predictions, Ctrl-C) is returned with
@@ -226,6 +229,7 @@ def solve(
         history=[c for _, r in runs for c in r.history],
         seconds=time.perf_counter() - t0,
         levels=[{"smoothing": s, "steps": r.steps, "cost": r.history[-1], "reason": r.reason} for s, r in runs],
+        gtol=gtol,
     )
     if throw and not result.success:
         raise RuntimeError(f"fit failed: {result.reason}")

@@ -1,0 +1,408 @@
+r"""Cold-start initialisation of a composed actuator from data alone (no prior guess of the parameters).
+
+The model is the parallel Hammerstein chain of `pj.Actuator`,
+$\delta = G(s)\big[w_0 V + \sum_i w_i P_{r_i}[V] + \sum_j c_j L_{\tau_j}[V]\big]$ with play operators $P_r$,
+Kelvin–Voigt creep lags $L_\tau = 1/(1 + \tau s)$ of gains $c_j = 1/k_j$, and a DC-normalised $G$ ($G(0) = 1$).
+For fixed thresholds $r_i$, time constants $\tau_j$ and dynamics $G$ the displacement is *linear* in
+$(w_0, w_i, c_j)$, and for a fixed drive $u = \mathcal{H}[V] + \mathcal{C}[V]$ the sampled $G$ is a linear ARX
+recursion. The cold start alternates these linear problems; everything here runs once, on concrete NumPy data of
+data-dependent size, so it is plain NumPy/SciPy (not jit-able, not differentiable, on purpose).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+import scipy.signal
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# linear building blocks (NumPy mirrors of the models' exact ZOH recursions)
+
+
+@jax.jit
+def _play(thresholds, v):
+    return pj.PlayOperator(thresholds)(v)
+
+
+def _play_columns(v: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
+    """`(N, n)` play outputs $P_{r_i}[v]$ from the demagnetised state, by the library's own operator (compiled once
+    per shape)."""
+    if thresholds.size == 0:
+        return np.zeros((v.size, 0))
+    return np.asarray(_play(jnp.asarray(thresholds), jnp.asarray(v)), dtype=float)
+
+
+def _lag_columns(v: np.ndarray, dt: float, taus: np.ndarray) -> np.ndarray:
+    r"""`(N, m)` unit-gain Kelvin–Voigt lags of `KelvinVoigtCreep` (ZOH, from rest):
+    $x_{k+1} = a x_k + (1 - a) v_k$, $y_k = x_k$, $a = e^{-dt/\tau}$."""
+    cols = []
+    for tau in taus:
+        a = np.exp(-dt / tau)
+        cols.append(scipy.signal.lfilter([0.0, -np.expm1(-dt / tau)], [1.0, -a], v))
+    return np.column_stack(cols) if cols else np.zeros((v.size, 0))
+
+
+def _filter_pairs(x: np.ndarray, dt: float, omega: np.ndarray, zeta: np.ndarray) -> np.ndarray:
+    r"""Apply the DC-normalised cascade $\prod_i \omega_i^2/(s^2 + 2\zeta_i\omega_i s + \omega_i^2)$, ZOH-sampled
+    from rest, along axis 0 (the sampled system of `StableTransferFunction(1.0, omega, zeta)`)."""
+    for w, z in zip(omega, zeta):
+        num, den, _ = scipy.signal.cont2discrete(([w * w], [1.0, 2 * z * w, w * w]), dt, method="zoh")
+        x = scipy.signal.lfilter(np.ravel(num), den, x, axis=0)
+    return x
+
+
+def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    r"""Non-negative least squares $\min_{x \ge 0}\|Ax - b\|$ through the small Gram system.
+
+    Columns are equilibrated (they span many decades), $A^\top A = R^\top R$ (Cholesky, with a $10^{-12}$ ridge on
+    the unit diagonal for nearly collinear neighbouring plays), and `scipy.optimize.nnls` runs on
+    $\|Rx - R^{-\top}A^\top b\|$, which differs from $\|Ax - b\|^2$ by a constant. The products use `einsum`
+    (no multithreaded BLAS: on a loaded machine its spinning threads made a 32000 × 66 QR take seconds)."""
+    norms = np.sqrt(np.einsum("ij,ij->j", a, a))
+    norms = np.where(norms > 0, norms, 1.0)
+    an = a / norms
+    gram = np.einsum("ij,ik->jk", an, an) + 1e-12 * np.eye(a.shape[1])
+    r = np.linalg.cholesky(gram).T
+    rhs = scipy.linalg.solve_triangular(r, np.einsum("ij,i->j", an, b), trans="T")
+    coef, _ = scipy.optimize.nnls(r, rhs, maxiter=50 * a.shape[1])
+    return coef / norms
+
+
+def _clusters(weights: np.ndarray, grid: np.ndarray, n: int, rel: float, log: bool) -> np.ndarray:
+    """Points of a dense non-negative fit reduced to `n`: runs of active grid points; while there are more than `n`,
+    the lightest run (total weight) is merged into its nearest neighbour; each run's weight-averaged position
+    (geometric when `log`).
+    Fewer than `n` runs: the missing points are spread log-uniformly over the grid's free range."""
+    pos = np.log(grid) if log else grid
+    active = weights > rel * max(weights.max(initial=0.0), np.finfo(float).tiny)
+    runs: list[list[int]] = []
+    for i in np.flatnonzero(active):
+        if runs and runs[-1][-1] == i - 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+
+    def centre(c):
+        w = weights[c]
+        return float(np.sum(w * pos[c]) / np.sum(w))
+
+    while len(runs) > n:
+        # the lightest run joins its nearest neighbour (merging by smallest gap instead would fuse two real,
+        # heavy clusters and keep a light spurious one, e.g. a play at the top of the grid fitting peak residue)
+        j = int(np.argmin([np.sum(weights[c]) for c in runs]))
+        left = centre(runs[j]) - centre(runs[j - 1]) if j > 0 else np.inf
+        right = centre(runs[j + 1]) - centre(runs[j]) if j + 1 < len(runs) else np.inf
+        k = j - 1 if left <= right else j + 1
+        lo, hi = min(j, k), max(j, k)
+        runs[lo : hi + 1] = [runs[lo] + runs[hi]]
+    points = [centre(c) for c in runs]
+    while len(points) < n:  # split the widest free interval
+        edges = [pos[0]] + sorted(points) + [pos[-1]]
+        j = int(np.argmax(np.diff(edges)))
+        points.append(0.5 * (edges[j] + edges[j + 1]))
+    points = np.sort(np.asarray(points))
+    return np.exp(points) if log else points
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# dynamics: ARX with a spectral fallback
+
+
+def _arx_lstsq(records, order: int, den: np.ndarray | None):
+    """One equation-error least squares (rows $k \ge n$), on $y$, $u$ prefiltered by $1/A(z)$ when `den` is given."""
+    rows, rhs = [], []
+    for u, y, _ in records:
+        n = y.size
+        if n <= order + 1:
+            continue
+        if den is not None:
+            u, y = scipy.signal.lfilter([1.0], den, u), scipy.signal.lfilter([1.0], den, y)
+        cols = [-y[order - i : n - i] for i in range(1, order + 1)] + [u[order - i : n - i] for i in range(1, order + 1)]
+        rows.append(np.column_stack(cols))
+        rhs.append(y[order:])
+    if not rows:
+        return None
+    a = np.concatenate(rows)
+    scale = np.sqrt(np.einsum("ij,ij->j", a, a))
+    scale = np.where(scale > 0, scale, 1.0)
+    an = a / scale
+    gram = np.einsum("ij,ik->jk", an, an)
+    coef = np.linalg.lstsq(gram, np.einsum("ij,i->j", an, np.concatenate(rhs)), rcond=None)[0] / scale
+    return np.concatenate([[1.0], coef[:order]])
+
+
+def _arx_pairs(records, order: int, iterations: int = 20):
+    r"""Discrete denominator by ARX least squares, $y_k = -\sum_{i=1}^{n} a_i y_{k-i} + \sum_{i=1}^{n} b_i
+    u_{k-i} + e_k$, pooled over the records of one step `dt` (rows $k \ge n$), refined by Steiglitz–McBride
+    iterations (the same least squares on $y$, $u$ prefiltered by $1/\hat A(z)$ of the previous estimate): plain
+    equation-error ARX is biased by output noise — badly at high sampling rates, where $y_{k-1}$, $y_{k-2}$ are
+    nearly collinear (measured here: $\zeta$ 0.30 for a true 0.10) — and the iteration converges to the
+    output-error estimate for white noise. Then the continuous poles $s = \ln z/dt$ of $z^n + a_1 z^{n-1} + \dots
+    + a_n$: a complex pair gives $\omega = |s|$, $\zeta = -\mathrm{Re}\,s/|s|$. Returns `(omega, zeta)` of the
+    `order/2` pole pairs, or `None` when a pole is unstable ($|z| \ge 1$), on the negative real axis (no
+    continuous-time equivalent), or the real poles cannot be paired."""
+    dt = records[0][2]
+
+    def stable(den):
+        return den is not None and np.all(np.isfinite(den)) and np.all(np.abs(np.roots(den)) < 1.0)
+
+    den = _arx_lstsq(records, order, None)
+    if not stable(den):
+        return None
+    for _ in range(iterations):
+        new = _arx_lstsq(records, order, den)
+        if not stable(new):
+            break
+        done = np.max(np.abs(new - den)) < 1e-10
+        den = new
+        if done:
+            break
+    z = np.roots(den)
+    if np.any((np.abs(z.imag) < 1e-12) & (z.real <= 0)):
+        return None
+    s = np.log(z.astype(complex)) / dt
+    upper = s[s.imag > 1e-12 * np.abs(s)]
+    real = np.sort(s[np.abs(s.imag) <= 1e-12 * np.abs(s)].real)
+    omega = list(np.abs(upper))
+    zeta = list(-upper.real / np.abs(upper))
+    if real.size % 2:
+        return None
+    for p, q in zip(real[0::2], real[1::2]):  # two real poles = one overdamped pair (zeta >= 1)
+        w = np.sqrt(p * q)
+        omega.append(w)
+        zeta.append(-(p + q) / (2 * w))
+    if not all(np.isfinite(omega)) or not all(np.isfinite(zeta)) or min(zeta, default=1.0) <= 0:
+        return None
+    order_idx = np.argsort(omega)
+    return np.asarray(omega)[order_idx], np.asarray(zeta)[order_idx]
+
+
+def _spectral_pairs(records, order: int):
+    r"""Fallback: the empirical frequency response $\hat H(f) = \hat S_{uy}(f)/\hat S_{uu}(f)$ (Welch, pooled over
+    records); the resonance $\omega = 2\pi f_{peak}$ at the largest $|\hat H|$ above the lowest bins, and
+    $\zeta$ from the peak height, $|H(\omega)| = 1/(2\zeta)$ for a DC-normalised pair, clipped to $[0.02, 1]$.
+    Extra pairs (order > 2) are placed one and two octaves above."""
+    dt = records[0][2]
+    num = den = 0.0
+    f = None
+    for u, y, _ in records:
+        nper = min(1024, u.size)
+        if nper < 16:
+            continue
+        f, puy = scipy.signal.csd(u, y, fs=1 / dt, nperseg=nper)
+        _, puu = scipy.signal.welch(u, fs=1 / dt, nperseg=nper)
+        num = num + puy
+        den = den + puu
+    if f is None:
+        return np.full(order // 2, 0.25 * np.pi / dt), np.full(order // 2, 0.5)
+    h = np.abs(num) / np.maximum(np.abs(den), np.finfo(float).tiny)
+    dc = float(np.median(h[1:4])) if h.size > 4 else 1.0
+    k = 4 + int(np.argmax(h[4:])) if h.size > 5 else h.size - 1
+    peak = h[k] / max(dc, np.finfo(float).tiny)
+    w = 2 * np.pi * f[k]
+    z = float(np.clip(1 / (2 * max(peak, 1e-12)), 0.02, 1.0))
+    omega = w * 2.0 ** np.arange(order // 2)
+    return omega, np.full(order // 2, z)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _records(dataset):
+    from ._data import Dataset
+
+    if not isinstance(dataset, Dataset):
+        dataset = Dataset(list(dataset))
+    recs = []
+    for exp in dataset:
+        if exp.has("displacement"):
+            recs.append((np.asarray(exp.v_in, float), np.asarray(exp.channels["displacement"], float), float(exp.dt)))
+    if not recs:
+        raise PiezojaxValueError("`dataset` has no experiment with a `displacement` channel: nothing to initialise from")
+    return recs
+
+
+def _design(v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray) -> np.ndarray:
+    """Design matrix `[v, P_r[v], L_tau[v]]` of one record, shape `(N, 1 + n + m)`."""
+    return np.column_stack([v, _play_columns(v, thresholds), _lag_columns(v, dt, taus)])
+
+
+def _through(designs, recs, omega, zeta) -> np.ndarray:
+    """Every record's design columns passed through the dynamics (if identified), stacked over records."""
+    if omega is None:
+        return np.concatenate(designs)
+    return np.concatenate([_filter_pairs(a, dt, omega, zeta) for a, (_, _, dt) in zip(designs, recs)])
+
+
+def _strictly_ascending(x: np.ndarray, spacing: float) -> np.ndarray:
+    """Sorted, at least `spacing/4` above 0 and strictly ascending (ties broken by a tiny offset)."""
+    x = np.maximum.accumulate(np.maximum(np.sort(x), 0.25 * spacing))
+    return x + 1e-6 * spacing * np.arange(x.size)
+
+
+def cold_start_actuator(
+    dataset,
+    n_plays: int,
+    creep_order: int,
+    dynamics_order: int = 2,
+    *,
+    grid_factor: int = 8,
+    tau_range: tuple[float, float] | None = None,
+    iterations: int = 2,
+    min_weight_fraction: float = 1e-3,
+    constrained: bool = True,
+):
+    r"""Initial `pj.Actuator` (PI hysteresis + Kelvin–Voigt creep + stable dynamics) from displacement data alone.
+
+    The model is $\delta = G(s)\big[w_0 V + \sum_{i=1}^{n} w_i P_{r_i}[V] + \sum_{j=1}^{m} L_{\tau_j}[V]/k_j\big]$
+    (`structure="parallel"`, `KelvinVoigtCreep(k, tau, k0=None)`, `StableTransferFunction(1.0, omega, zeta)` with
+    unit DC gain, so the static scale sits in the hysteresis and the creep gains). Steps:
+
+    1. **Dense linear fit.** Non-negative least squares of the displacement on
+       $[V, P_{\rho_1}[V], \dots, P_{\rho_{gn}}[V], L_{t_1}[V], \dots, L_{t_{gm}}[V]]$ over all records: a dense
+       threshold grid $\rho$ on $(0, \max|V|)$ and a log-spaced time-constant grid $t$ over `tau_range` (default
+       $[5\,dt_{min}, T_{max}/2]$, $T_{max}$ the longest record). Both the PI output and the creep output are
+       linear in their gains for fixed $r$, $\tau$ (the creep gains $c_j = 1/k_j \ge 0$).
+    2. **Thresholds** by `pj.pi_cold_start` on $(V, \delta - \hat{\mathcal C}[V])$ (the dense creep part removed);
+       **time constants** by clustering the dense creep gains on the log-$\tau$ grid into `creep_order` groups
+       (each group's gain-weighted geometric mean).
+    3. **Weights and creep gains** by one non-negative least squares with those $r_i$, $\tau_j$.
+    4. **Dynamics** by ARX least squares of $\delta$ on the drive $u = \hat{\mathcal H}[V] + \hat{\mathcal C}[V]$,
+       $\delta_k = -\sum_{i \le n_G} a_i\delta_{k-i} + \sum_{i \le n_G} b_i u_{k-i}$ (the ZOH-sampled all-pole
+       $G$ is strictly proper), pooled over the records of the most common $dt$; the discrete poles $z$ map to
+       $s = \ln z/dt$, a complex pair to $\omega = |s|$, $\zeta = -\mathrm{Re}\,s/|s|$, two real poles
+       $p, q < 0$ to $\omega = \sqrt{pq}$, $\zeta = -(p + q)/(2\omega) \ge 1$. **Fallback** when a pole is unstable
+       or on the negative real axis: the peak of the empirical frequency response $S_{uy}/S_{uu}$ (Welch), with
+       $\zeta = 1/(2|H|_{peak})$ clipped to $[0.02, 1]$.
+    5. **Refinement** (`iterations` times): step 3 again with every column passed through the identified $G$
+       ($G$ is linear, so $\delta = \sum w_i G[P_{r_i}[V]] + \dots$ is still linear in the gains), then step 4 on
+       the new drive.
+
+    The result is wrapped for `fitting.fit`: `weights`, `w0`, creep `stiffnesses`, `time_constants` and dynamics
+    `omega`, `zeta` as `pj.Positive`, `thresholds` as `pj.OrderedPositive` (with `constrained=False`, the plain
+    model). Free everything but the dynamics' `gain` (fixed at 1: it duplicates the overall scale), e.g.
+    `free=["hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0", "creep", "dynamics.omega",
+    "dynamics.zeta"]`.
+
+    Only the sampled ZOH convention of `pj.Actuator.simulate` (the fitting default) is mirrored. Plain NumPy/SciPy:
+    not jit-able or differentiable (it runs once, before the fit).
+
+    **Arguments:**
+
+    - `dataset`: a `fitting.Dataset` (or a sequence of `fitting.Experiment`); the experiments with a `displacement`
+      channel are used.
+    - `n_plays`: number of play operators ($\ge 1$).
+    - `creep_order`: number of Kelvin–Voigt lags ($\ge 0$; 0: no creep block).
+    - `dynamics_order`: order of $G$, even ($\ge 0$; 0: no dynamics block).
+    - `grid_factor`: dense grid sizes are `grid_factor` times the number of plays / lags.
+    - `tau_range`: `(tau_min, tau_max)` of the time-constant grid [s].
+    - `iterations`: refinement passes of steps 3–4.
+    - `min_weight_fraction`: dense gains below this fraction of the largest count as zero when clustering.
+    - `constrained`: return the reparametrised model (default) or the plain one.
+
+    **Returns:** a `pj.Actuator`.
+
+    ```python
+    init = fitting.cold_start_actuator(dataset, n_plays=6, creep_order=2)
+    result = fitting.fit(init, dataset, free=[...], weights="noise")
+    ```
+    """
+    for name, value, low in (("n_plays", n_plays, 1), ("creep_order", creep_order, 0), ("dynamics_order", dynamics_order, 0)):
+        if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < low:
+            raise PiezojaxValueError(f"`{name}` must be an integer >= {low}, got {value!r}")
+    if dynamics_order % 2:
+        raise PiezojaxValueError(
+            f"`dynamics_order` must be even (pole pairs; two real poles are an overdamped pair), got {dynamics_order}"
+        )
+    if not (isinstance(iterations, int) and iterations >= 0):
+        raise PiezojaxValueError(f"`iterations` must be an integer >= 0, got {iterations!r}")
+    if not (isinstance(grid_factor, int) and grid_factor >= 1):
+        raise PiezojaxValueError(f"`grid_factor` must be an integer >= 1, got {grid_factor!r}")
+    recs = _records(dataset)
+    vmax = max(float(np.max(np.abs(v))) for v, _, _ in recs)
+    if not vmax > 0:
+        raise PiezojaxValueError("`dataset`: every `v_in` is identically zero, nothing can be identified")
+    dt_min = min(dt for _, _, dt in recs)
+    t_max = max(v.size * dt for v, _, dt in recs)
+    if tau_range is None:
+        tau_range = (5 * dt_min, 0.5 * t_max)
+    tau_lo, tau_hi = (float(x) for x in tau_range)
+    if not (0 < tau_lo < tau_hi and np.isfinite(tau_hi)):
+        raise PiezojaxValueError(f"`tau_range` must be (tau_min, tau_max) with 0 < tau_min < tau_max, got {tau_range}")
+
+    npairs = dynamics_order // 2
+    dt_counts: dict[float, int] = {}
+    for v, _, dt in recs:
+        dt_counts[dt] = dt_counts.get(dt, 0) + v.size
+    dt_arx = max(dt_counts, key=dt_counts.get)
+    is_arx = [dt == dt_arx for _, _, dt in recs]
+    y_all = np.concatenate([y for _, y, _ in recs])
+
+    # dense design: a threshold grid on (0, max|V|) and a log-spaced time-constant grid
+    n_grid = grid_factor * n_plays
+    r_grid = vmax * np.arange(1, n_grid + 1) / (n_grid + 1)
+    tau_grid = np.geomspace(tau_lo, tau_hi, grid_factor * creep_order) if creep_order else np.zeros(0)
+    dense_raw = [_design(v, dt, r_grid, tau_grid) for v, _, dt in recs]
+
+    omega = zeta = None
+    for it in range(1 + (iterations if npairs else 0)):
+        # 1.-2. dense non-negative fit through the current dynamics, clustered into thresholds and time constants
+        dense = _nnls(_through(dense_raw, recs, omega, zeta), y_all)
+        thresholds = _clusters(dense[1 : 1 + n_grid], r_grid, n_plays, min_weight_fraction, log=False)
+        thresholds = _strictly_ascending(thresholds, r_grid[0])
+        c_dense = dense[1 + n_grid :]
+        taus = _clusters(c_dense, tau_grid, creep_order, min_weight_fraction, log=True) if creep_order else tau_grid
+        # 3. the compact linear fit
+        compact_raw = [_design(v, dt, thresholds, taus) for v, _, dt in recs]
+        coef = _nnls(_through(compact_raw, recs, omega, zeta), y_all)
+        if not npairs:
+            break
+        # 4. ARX of the displacement on the drive u = H[V] + C[V]
+        pairs = [(a @ coef, y, dt) for a, (_, y, dt), ok in zip(compact_raw, recs, is_arx) if ok]
+        omega, zeta = _arx_pairs(pairs, dynamics_order) or _spectral_pairs(pairs, dynamics_order)
+    if npairs:  # 5. final gains through the final dynamics
+        coef = _nnls(_through(compact_raw, recs, omega, zeta), y_all)
+
+    # strictly positive gains, so that the Positive reparametrisation can start from them
+    top = max(float(np.max(coef[: 1 + n_plays])), np.finfo(float).tiny)
+    w0 = max(float(coef[0]), 1e-3 * top)
+    weights = np.maximum(coef[1 : 1 + n_plays], 1e-3 * top)
+    gains = coef[1 + n_plays :]
+    if creep_order:
+        gains = np.maximum(gains, 1e-3 * max(float(np.max(gains)), 1e-3 * top))
+
+    f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
+    hyst = pj.PrandtlIshlinskii(f64(weights), f64(thresholds), w0=f64(w0))
+    creep = pj.KelvinVoigtCreep(f64(1.0 / gains), f64(taus), k0=None) if creep_order else None
+    dyn = pj.StableTransferFunction(f64(1.0), omega=f64(omega), zeta=f64(zeta)) if npairs else None
+    model = pj.Actuator(hyst, creep, dyn)
+    if not constrained:
+        return model
+    model = pj.constrain(model, lambda m: m.hysteresis.weights, pj.Positive)
+    model = pj.constrain(model, lambda m: m.hysteresis.w0, pj.Positive)
+    model = pj.constrain(model, lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    if creep_order:
+        model = pj.constrain(model, lambda m: m.creep.stiffnesses, pj.Positive)
+        model = pj.constrain(model, lambda m: m.creep.time_constants, pj.Positive)
+    if npairs:
+        model = pj.constrain(model, lambda m: m.dynamics.omega, pj.Positive)
+        model = pj.constrain(model, lambda m: m.dynamics.zeta, pj.Positive)
+    return model
+
+
+def cold_start_free(model) -> list[str]:
+    """The parameter paths to free when fitting a `cold_start_actuator` model: everything but the dynamics' DC
+    gain (it duplicates the overall scale of hysteresis and creep) and the hysteresis smoothing."""
+    paths = ["hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0"]
+    m = pj.unwrap(model)
+    if m.creep is not None:
+        paths += ["creep.stiffnesses", "creep.time_constants"]
+    if m.dynamics is not None:
+        paths += ["dynamics.omega", "dynamics.zeta"]
+    return paths
+

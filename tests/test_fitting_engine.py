@@ -1,0 +1,186 @@
+"""The calibration engine: Jacobian, parameter selection, padding, failure modes, bad input, save/load."""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fitting
+import fitting._plots as fitting_plots
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+DT = 1e-3
+
+
+def _model(smoothing=0.0):
+    return pj.Actuator(
+        pj.PrandtlIshlinskii(jnp.array([0.3, 0.2]), jnp.array([10.0, 30.0]), w0=1.0, smoothing=smoothing),
+        None,
+        pj.StableTransferFunction(1.0, omega=jnp.array([2 * np.pi * 40.0]), zeta=jnp.array([0.4])),
+        capacitance=1e-9,
+        coupling=2e-9,
+    )
+
+
+def _experiments(model, lengths=(600, 600, 450), noise=1e-3, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, n in enumerate(lengths):
+        t = np.arange(n) * DT
+        v = (30 + 15 * i) * np.sin(2 * np.pi * (2 + i) * t) * np.minimum(1, t / 0.1)
+        y = np.asarray(model.simulate(v, DT).displacement)
+        out.append(fitting.Experiment.from_arrays(t=t, v_in=v, name=f"e{i}", displacement=y + noise * rng.standard_normal(n)))
+    return fitting.Dataset(out)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return _experiments(_model())
+
+
+def test_jacobian_matches_central_differences(data):
+    # smooth plays, so that the residuals are differentiable everywhere and FD is a fair reference
+    model = _model(smoothing=0.1)
+    model = pj.constrain(model, lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    prob = fitting.Problem(model, data, free=["hysteresis", "dynamics.omega", "dynamics.zeta"])
+    u = prob.u0 * 1.01
+    r, jt = prob.residuals_and_jacobian(u)
+    res = jax.jit(prob.residuals)
+    h = 1e-6
+    fd = np.stack([(np.asarray(res(u + h * e)) - np.asarray(res(u - h * e))) / (2 * h) for e in np.eye(u.size)])
+    np.testing.assert_allclose(np.asarray(jt), fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max())
+    assert np.allclose(np.asarray(r), np.asarray(res(u)))
+
+
+def test_padding_equals_separate_problems(data):
+    model = _model()
+    joint = fitting.Problem(model, data, free=["hysteresis.weights"])
+    assert len(joint.core.groups) == 1  # one dt, one channel set: padded to 600 and vmapped
+    r_joint = np.asarray(joint.residuals(joint.u0))
+    parts = [np.asarray(fitting.Problem(model, [e], free=["hysteresis.weights"], weights=joint.weights).residuals(
+        joint.u0)) for e in data]
+    n = [e.n for e in data]
+    # padded layout: experiment j occupies [j*600, j*600 + n_j); the padding is exactly zero
+    for j, (p, nj) in enumerate(zip(parts, n)):
+        np.testing.assert_allclose(r_joint[j * 600 : j * 600 + nj], p, rtol=0, atol=1e-15)
+        assert np.all(r_joint[j * 600 + nj : (j + 1) * 600] == 0)
+    assert joint.num_residuals == sum(n)
+
+
+def test_free_selection_by_path_and_selector(data):
+    model = pj.constrain(_model(), lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    p1 = fitting.Problem(model, data, free=["hysteresis.thresholds", "coupling"])
+    assert p1.parameter_names() == ["hysteresis.thresholds[0]", "hysteresis.thresholds[1]", "coupling"]
+    np.testing.assert_allclose(np.asarray(p1.physical(p1.u0)), [10.0, 30.0, 2e-9], rtol=1e-12)
+    p2 = fitting.Problem(model, data, free=lambda m: (m.hysteresis.thresholds, m.coupling))
+    assert p2.parameter_names() == p1.parameter_names()
+    # default: every parameter except the smoothing
+    p3 = fitting.Problem(model, data)
+    assert not any("smoothing" in n for n in p3.parameter_names())
+    assert "dynamics.omega[0]" in p3.parameter_names()
+    with pytest.raises(PiezojaxValueError, match="no parameter 'hysteresis.gain'.*available: .*hysteresis.weights"):
+        fitting.Problem(model, data, free=["hysteresis.gain"])
+
+
+def test_bad_input_errors(data):
+    model = _model()
+    only_v = fitting.Dataset([fitting.Experiment.from_arrays(t=data[0].t, v_in=data[0].v_in, name="x",
+                                                             force=data[0].v_in * 0 + 1.0)])
+    with pytest.raises(PiezojaxValueError, match="none of the channels the model predicts"):
+        fitting.Problem(model, only_v)
+    with pytest.raises(PiezojaxValueError, match="does not predict 'force'"):
+        fitting.Problem(model, data, targets=["force"])
+    obs = pj.IvanBench().observer()
+    with pytest.raises(PiezojaxValueError, match="lacks the channel.*v_out"):
+        fitting.Problem(obs, data)
+    with pytest.raises(PiezojaxValueError, match="weights"):
+        fitting.Problem(model, data, weights="loudness")
+    with pytest.raises(PiezojaxValueError, match="underdetermined"):
+        short = fitting.Dataset([fitting.Experiment.from_arrays(dt=DT, v_in=[0.0, 1.0, 2.0], name="s",
+                                                                displacement=[0.0, 1.0, 2.0])])
+        fitting.Problem(model, short)
+    with pytest.raises(PiezojaxValueError, match="v_in.*NaN|NaN.*v_in|non-finite|finite"):
+        fitting.Experiment.from_arrays(dt=DT, v_in=[0.0, np.nan, 2.0], name="nan", displacement=[0.0, 1.0, 2.0])
+
+
+def _recover(data, **kw):
+    start = eqx.tree_at(lambda m: (m.hysteresis.weights, m.dynamics.omega), _model(),
+                        (jnp.array([0.2, 0.3]), jnp.array([2 * np.pi * 30.0])))
+    return fitting.fit(start, data, free=["hysteresis.weights", "hysteresis.w0", "dynamics.omega", "dynamics.zeta"],
+                       progress=False, **kw)
+
+
+def test_fit_recovers_and_reports(data):
+    res = _recover(data)
+    assert res.success, res.reason
+    truth = {"hysteresis.weights[0]": 0.3, "hysteresis.weights[1]": 0.2, "hysteresis.w0": 1.0,
+             "dynamics.omega[0]": 2 * np.pi * 40.0, "dynamics.zeta[0]": 0.4}
+    for name, v, se in zip(res.parameter_names, res.values, res.std_errors):
+        assert abs(v - truth[name]) < 5 * se, (name, v, se)
+        assert 0 < se < 0.05 * abs(truth[name])
+    for e in data:
+        m = res.metrics[e.name]["displacement"]
+        assert abs(m["rmse"] - 1e-3) < 2e-4  # the noise level
+    assert res.cost < res.initial_cost and res.history[-1] == pytest.approx(res.cost, rel=1e-12)
+    text = res.report()
+    assert "converged" in text and "dynamics.omega[0]" in text
+    assert np.allclose(np.diag(res.correlation), 1.0)
+
+
+def test_failed_fits_return_reasons_not_nan(data):
+    res = _recover(data, max_steps=2)
+    assert not res.success and res.code == "max_steps_reached" and "max_steps" in res.reason
+    assert np.all(np.isfinite(res.values))
+
+    def nan_after_start(m, d):  # predictions are NaN once the gain leaves its start: every trial step fails
+        g = m.hysteresis.w0
+        y = m.simulate(d.v_in, d.dt).displacement
+        return {"displacement": jnp.where(jnp.abs(g - 1.0) > 0, jnp.nan, 1.0) * y}
+
+    pred = fitting.Predictor(nan_after_start, ("displacement",))
+    start = eqx.tree_at(lambda m: m.hysteresis.weights, _model(), jnp.array([0.25, 0.25]))
+    res = fitting.fit(start, data, predictor=pred, free=["hysteresis.w0", "hysteresis.weights"], progress=False)
+    assert not res.success and res.code in ("stalled", "not_stationary")
+    np.testing.assert_allclose(res.values, [0.25, 0.25, 1.0])  # the last accepted (= initial) parameters
+    with pytest.raises(RuntimeError, match="fit failed: (no decrease|stopped where)"):
+        fitting.fit(start, data, predictor=pred, free=["hysteresis.w0"], progress=False, throw=True)
+
+    always_nan = fitting.Predictor(lambda m, d: {"displacement": d.v_in * jnp.nan}, ("displacement",))
+    res = fitting.fit(start, data, predictor=always_nan, free=["hysteresis.w0"], progress=False)
+    assert not res.success and res.code == "nonfinite_initial"
+
+
+def test_continuation_levels_and_smoothing(data):
+    res = _recover(data, smoothing=(0.05, 0.0))
+    assert [lv["smoothing"] for lv in res.levels] == [0.05, 0.0]
+    assert float(res.model.hysteresis.smoothing) == 0.0
+    assert res.success, res.reason
+
+
+def test_save_load_atomic(data, tmp_path, monkeypatch):
+    res = _recover(data)
+    out = res.save(tmp_path / "fit", extra={"note": "test"})
+    summary = json.loads((out / "result.json").read_text())
+    assert summary["success"] and summary["note"] == "test"
+    assert set(summary["parameters"]) == set(res.parameter_names)
+    assert (out / "report.txt").read_text().startswith("fit converged")
+    assert list(out.glob("timeseries_*.png")) and list(out.glob("loops_*.png"))
+    loaded = fitting.load_model(out, like=_model())
+    v = data[0].v_in
+    np.testing.assert_array_equal(np.asarray(loaded.simulate(v, DT).displacement),
+                                  np.asarray(res.model.simulate(v, DT).displacement))
+    with pytest.raises(PiezojaxValueError):
+        res.save(tmp_path / "fit")  # exists
+    # interrupted while writing the figures: nothing appears
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fitting_plots, "plot_result", boom)
+    with pytest.raises(KeyboardInterrupt):
+        res.save(tmp_path / "fit2")
+    assert not (tmp_path / "fit2").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["fit"]
