@@ -214,9 +214,9 @@ class Problem:
     r"""A least-squares calibration problem: weighted residuals of a model's predictions over a dataset.
 
     The residual vector stacks, for every experiment $e$, target channel $c$ and sample $k$,
-    $r_{eck} = w_c\,(\hat y_{ec}[k] - y_{ec}[k])$. Experiments with the same sample step and channels are padded to
-    a common length (inputs held at their last value; padded samples masked out — valid because every model is
-    causal) and simulated together under `jax.vmap`.
+    $r_{eck} = w_c\,(\hat y_{ec}[k] - y_{ec}[k])$. Experiments with the same sample step and channels, and lengths in
+    the same power-of-2 bracket, are padded to a common length (inputs held at their last value; padded samples
+    masked out — valid because every model is causal) and simulated together under `jax.vmap`.
 
     **Arguments:**
 
@@ -342,13 +342,14 @@ class Problem:
             chans = tuple(c for c in self.targets if exp.has(c))
             if not chans:
                 continue
-            key = (float(np.float32(exp.dt)), chans)
+            # pad only experiments of similar length together (within a factor 2), to bound the padding overhead
+            key = (float(np.float32(exp.dt)), chans, int(np.ceil(np.log2(exp.n))))
             keys.setdefault(key, []).append(i)
         if not keys:
             raise PiezojaxValueError("no experiment has any of the target channels")
         groups = []
         inputs = self.predictor.inputs
-        for (_, chans), idx in keys.items():
+        for (_, chans, _), idx in keys.items():
             exps = [self.dataset[i] for i in idx]
             n = max(e.n for e in exps)
             dt = float(np.mean([e.dt for e in exps]))

@@ -26,7 +26,7 @@ def _model(smoothing=0.0):
     )
 
 
-def _experiments(model, lengths=(600, 600, 450), noise=1e-3, seed=0):
+def _experiments(model, lengths=(600, 600, 520), noise=1e-3, seed=0):
     rng = np.random.default_rng(seed)
     out = []
     for i, n in enumerate(lengths):
@@ -59,7 +59,10 @@ def test_jacobian_matches_central_differences(data):
 def test_padding_equals_separate_problems(data):
     model = _model()
     joint = fitting.Problem(model, data, free=["hysteresis.weights"])
-    assert len(joint.core.groups) == 1  # one dt, one channel set: padded to 600 and vmapped
+    assert len(joint.core.groups) == 1  # one dt, one channel set, lengths in (512, 1024]: padded to 600, vmapped
+    long = fitting.Dataset([*data, fitting.Experiment.from_arrays(dt=DT, v_in=np.ones(2000), name="long",
+                                                                  displacement=np.ones(2000))])
+    assert len(fitting.Problem(model, long, free=["hysteresis.weights"]).core.groups) == 2
     r_joint = np.asarray(joint.residuals(joint.u0))
     parts = [np.asarray(fitting.Problem(model, [e], free=["hysteresis.weights"], weights=joint.weights).residuals(
         joint.u0)) for e in data]
