@@ -155,10 +155,11 @@ def test_ivan_force_band_with_true_operators_and_linear_model(ivan):
     # Only sensor noise, quantisation and bias drift remain: well inside the paper's +8 % / -6 % band.
     assert -0.03 < err.min() and err.max() < 0.03, (err.min(), err.max())
     # Eq. (3) with the linear C_P only (no hysteresis or creep compensation) is far off: the paper's point that a
-    # 1 % charge error becomes a ~24 % force error.
+    # 1 % charge error becomes a ~24 % force error. The Preisach truth's irreversible charge (16 % of the chord at
+    # 10 V amplitude, with remanence after the first excursion) gives about 6x the maximum force (measured 6.18).
     linear = _observe(bench.observer(), rec.v_in, rec.v_out, rec.dt)
     err_lin = (np.asarray(linear.force) - f) / fmax
-    assert np.max(np.abs(err_lin)) > 0.2
+    assert np.max(np.abs(err_lin)) > 2.0
 
 
 # ---------------------------------------------------------------- paper 002
