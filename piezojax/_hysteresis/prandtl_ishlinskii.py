@@ -1,13 +1,27 @@
 r"""The Prandtl–Ishlinskii operator (weighted superposition of play operators) and its analytic inverse."""
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_scalar, check_vector, concrete_or_none
 from .._custom_types import ScalarLike, VectorLike
-from .play import _AbstractStopCell, check_smoothing, error_if_bad_smoothing, param_dtype
+from .play import (
+    _AbstractStopCell,
+    _tangent_or_none,
+    check_smoothing,
+    error_if_bad_smoothing,
+    exact_flag,
+    input_tangent_scan,
+    param_dtype,
+    scan_exact_or_smooth,
+    sensitivity_scan,
+    stop_update,
+)
 
 
 def _thresholds_error(thresholds: Array) -> Array:
@@ -21,6 +35,72 @@ def _thresholds_error(thresholds: Array) -> Array:
 _THRESHOLDS_MESSAGE = "`thresholds` must be finite, >= 0 and strictly ascending"
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def pi_scan(
+    exact: bool | None, w0: Array, weights: Array, r: Array, smoothing: Array, v0: Array, z0: Array, signal: Array
+):
+    r"""Run a Prandtl–Ishlinskii operator over `signal` from the state `(v0, z0)`; return `(z_T, y)`.
+
+    `exact`: True, False, or None to choose by `lax.cond` on `smoothing == 0` (inside, so `jax.jacfwd` batches no
+    `cond` and its output needs no transposition).
+
+    $y_k = w_0 v_k + \sum_i w_i (v_k - z_{i,k})$ with the stop values $z_{i,k}$ of `stop_scan`. Derivatives use the
+    hand-derived forward sensitivities of `play.sensitivity_scan`: with $R_{i,k} = \partial z_{i,k}/\partial r_i$ and
+    $S_{i,k} = \partial z_{i,k}/\partial s$ (one scan, independent of the number of tangent directions),
+    $\dot y_k = \dot w_0 v_k + \sum_i \dot w_i (v_k - z_{i,k}) - \sum_i w_i (R_{i,k}\dot r_i + S_{i,k}\dot s)
+    + (w_0 + \sum_i w_i)\dot v_k - \sum_i w_i \dot z^{v}_{i,k}$, where $\dot z^{v}$ (input and initial-state tangents)
+    has its own recurrence and is skipped when those tangents are symbolic zeros. The values equal autodiff through
+    the scan (same tie rules); the tangent is linear, so `jax.grad` works through it.
+    """
+
+    def run(exact):
+        def body(carry, v):
+            v_prev, z = carry
+            z = stop_update(z, v - v_prev, r, smoothing, exact)
+            return (v, z), w0 * v + jnp.dot(weights, v - z)
+
+        (_, z_last), y = jax.lax.scan(body, (v0, z0), signal)
+        return z_last, y
+
+    return scan_exact_or_smooth(exact, smoothing, run)
+
+
+@functools.partial(pi_scan.defjvp, symbolic_zeros=True)
+def _pi_scan_jvp(exact, primals, tangents):
+    w0, w, r, smoothing, v0, z0, signal = primals
+    dw0, dw, dr, ds, dv0, dz0, dv = (_tangent_or_none(t) for t in tangents)
+    ds = None if exact is True else ds
+    with_inputs = not (dv is None and dv0 is None and dz0 is None)
+    carry, rows, ab = sensitivity_scan(
+        r, smoothing, v0, z0, signal, exact, dr is not None, ds is not None, with_inputs, with_play=True
+    )
+    length = signal.shape[0]
+    y = w0 * signal + rows[:, 0] @ w
+    # one matrix product for every parameter direction: rows [play, R, S] against [dw, -w dr, -w ds]
+    coeffs = [jnp.zeros_like(w) if dw is None else dw]
+    dz_last = jnp.zeros_like(z0)
+    k = 1
+    for d in (dr, ds):
+        if d is not None:
+            coeffs.append(-w * d)
+            dz_last = dz_last + carry[k] * d
+            k += 1
+    columns = rows.reshape(length, -1)
+    if dw0 is not None:
+        # in the same product: a separate `signal * dw0` is batched as (direction, time) under `jax.jacfwd`, the
+        # product as (time, direction), and adding them costs a transposition larger than the product itself
+        columns = jnp.concatenate([signal[:, None], columns], axis=1)
+        coeffs.insert(0, dw0[None])
+    dy = columns @ jnp.concatenate(coeffs)
+    if with_inputs:
+        dz_in_last, dz_in = input_tangent_scan(ab, dz0, dv0, dv, signal.shape, signal.dtype)
+        dy = dy - dz_in @ w
+        dz_last = dz_last + dz_in_last
+        if dv is not None:
+            dy = dy + (w0 + jnp.sum(w)) * dv
+    return (carry[0], y), (dz_last, dy)
+
+
 class PrandtlIshlinskii(_AbstractStopCell):
     r"""The Prandtl–Ishlinskii hysteresis operator: a linear term plus weighted play operators.
 
@@ -30,8 +110,11 @@ class PrandtlIshlinskii(_AbstractStopCell):
     `smoothing` $s > 0$ every play uses the smooth rate-independent law of `play_step` (boundary layer $s r_i$);
     $s \approx 0.1$ is a good start for fitting, continued to 0. Works under `jit`, `vmap`, `jax.grad` and
     `jax.jacfwd`; derivatives at exact ties follow `clip_stop` (e.g. $\partial H/\partial v$ includes $w_i$ fully for
-    a zero threshold). The exact operator (`smoothing` = 0, concrete or traced) runs as one fused loop on XLA:CPU;
-    the smooth one is about 10-20x slower per sample.
+    a zero threshold). They come from hand-derived forward sensitivities (`pi_scan`): one scan computes
+    $\partial z_i/\partial r_i$ (and $\partial z_i/\partial s$) for every tangent direction at once, so `jax.jacfwd`
+    batches a matrix product instead of the scan body (same values as autodiff through the scan; timings in
+    `experiments/bench_hysteresis.py`). The exact operator (`smoothing` = 0, concrete or traced) runs as one fused
+    loop on XLA:CPU; the smooth one is about 10-20x slower per sample.
 
     **Arguments:**
 
@@ -84,6 +167,14 @@ class PrandtlIshlinskii(_AbstractStopCell):
     def _output(self, v, z):
         # state and update are the shared stop cell's; the plays are v - z
         return self.w0 * v + jnp.dot(self.weights, v - z)
+
+    def _run(self, state, signal):
+        # One scan with hand-derived forward sensitivities (`pi_scan`): `jax.jacfwd` batches a matrix product, not
+        # the scan body. `_run_autodiff` is the plain-autodiff reference.
+        v0, z0 = state
+        exact = exact_flag(self.smoothing)
+        z_last, y = pi_scan(exact, self.w0, self.weights, self.thresholds, self.smoothing, v0, z0, signal)
+        return (signal[-1], z_last), y
 
     def loading_curve(self, v: ArrayLike) -> Array:
         r"""The initial loading curve $\varphi(v) = w_0 v + \sum_i w_i \max(v - r_i, 0)$ for $v \geq 0$.
