@@ -48,3 +48,4 @@ from ._results import (
     load_summary as load_summary,
 )
 from ._solve import fit as fit, set_smoothing as set_smoothing, solve as solve
+from ._staged import staged_ivan2009 as staged_ivan2009

@@ -85,8 +85,8 @@ def _lm_step(solver, core, y, dynamic):
             st.num_accepted_steps, st.num_steps_since_acceptance)
 
 
-def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, max_steps, linear_solver, progress,
-                         label="", max_rejections=40) -> _Run:
+def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
+                         label="", max_rejections=40, window=5) -> _Run:
     solver = _solver(float(rtol), float(atol), linear_solver)
     dynamic, r0 = _lm_init(solver, core, u0)
     # the initial point must be finite, else nothing downstream means anything
@@ -104,7 +104,7 @@ def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, max_steps, l
         )
     y = u0
     t0 = time.perf_counter()
-    k = accepted = 0
+    k = accepted = prev_accepted = 0
     try:
         for k in range(1, max_steps + 1):
             y_new, dynamic, terminate, ok, cost, accepted, since = _lm_step(solver, core, y, dynamic)
@@ -112,8 +112,9 @@ def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, max_steps, l
             if not bool(jnp.all(jnp.isfinite(y_new))):
                 return _Run(y, k, accepted, history, False, "the solver produced non-finite parameters", "nonfinite")
             y = y_new
-            if k > 1 or accepted:
+            if accepted > prev_accepted and k > 1:  # step 1 only evaluates the start point
                 history.append(cost)
+            prev_accepted = accepted
             if progress:
                 print(
                     f"\r  {label}step {k:4d}  cost {cost:.6e}  accepted {accepted:4d}  "
@@ -130,6 +131,14 @@ def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, max_steps, l
                 if progress:
                     print(file=sys.stderr)
                 return _Run(y, k, accepted, history, True, "converged (relative change below rtol/atol)", "successful")
+            # accepted steps that no longer lower the cost (parameters drifting along a flat valley, e.g. the
+            # threshold of a play whose weight is zero) end the fit too
+            if len(history) > window and history[-window - 1] - history[-1] <= ftol * history[-1]:
+                if progress:
+                    print(file=sys.stderr)
+                return _Run(y, k, accepted, history, True,
+                            f"converged (cost decreased by less than ftol = {ftol:g} relative over {window} accepted "
+                            "steps)", "successful")
             if since >= max_rejections:
                 if progress:
                     print(file=sys.stderr)
@@ -160,6 +169,7 @@ def solve(
     max_steps: int = 200,
     rtol: float = 1e-8,
     atol: float = 1e-10,
+    ftol: float = 1e-10,
     linear_solver: lx.AbstractLinearSolver | None = None,
     progress: bool = True,
     throw: bool = False,
@@ -178,7 +188,8 @@ def solve(
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
     - `max_steps`: Levenberg–Marquardt steps per level; `rtol`, `atol`: optimistix's Cauchy termination tolerances
-      on the parameters and the residuals.
+      on the parameters and the residuals; `ftol`: the fit also stops (converged) when five accepted steps lower the
+      cost by less than `ftol` relative.
     - `progress`: print step, cost, accepted steps and elapsed time on stderr.
     - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` (not a stationary point: e.g. the trust
       region shrank to nothing around non-finite predictions) is reported as failed (`"not_stationary"`).
@@ -208,7 +219,7 @@ def solve(
             frozen = set_smoothing(frozen, s)
         label = f"[smoothing {s:g}] " if s is not None else ""
         core = problem.with_frozen(frozen).core
-        run = _levenberg_marquardt(problem, u, core, rtol=rtol, atol=atol, max_steps=max_steps,
+        run = _levenberg_marquardt(problem, u, core, rtol=rtol, atol=atol, ftol=ftol, max_steps=max_steps,
                                    linear_solver=linear_solver, progress=progress, label=label)
         runs.append((s, run))
         u = run.u
