@@ -8,6 +8,7 @@
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 """
 
+from ._config import ModelConfig as ModelConfig, load_config as load_config, parse_config as parse_config
 from ._data import (
     CHANNELS as CHANNELS,
     SUPPORTED_SUFFIXES as SUPPORTED_SUFFIXES,

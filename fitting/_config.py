@@ -224,7 +224,8 @@ class ModelConfig:
         return ("v_out",) if self.is_observer else ()
 
     def predictor(self):
-        """The `fitting.Predictor` for this model (its `outputs` restricted to `self.outputs`)."""
+        """The built-in `fitting.Predictor` for this model (`actuator_predictor()` or `observer_predictor()`); the
+        channels to use are `outputs` (an actuator without `[charge]` predicts zero charge)."""
         from ._predict import actuator_predictor, observer_predictor
 
         return observer_predictor(force=True) if self.is_observer else actuator_predictor()
@@ -269,7 +270,11 @@ class ModelConfig:
             paths += ["creep.gamma", "creep.t0"]
         if self.is_observer:
             paths += ["force_sensitivity", "displacement_coefficient", "stiffness"]
+            if h == "none":
+                paths.append("capacitance_p")
             return tuple(paths)
+        if h == "none":
+            paths.append("dynamics.gain")
         n2, n1 = divmod(self.dynamics_order, 2)
         if n2:
             paths += ["dynamics.omega", "dynamics.zeta"]
@@ -279,8 +284,15 @@ class ModelConfig:
             paths += ["capacitance", "coupling"]
         return tuple(paths)
 
-    def fit_free(self) -> list[str]:
-        return list(self.free) if self.free is not None else list(self.default_free())
+    def fit_free(self, targets: tuple[str, ...] | None = None) -> list[str]:
+        """`[fit] free`, else `default_free()` (without `capacitance`/`coupling` when `targets` has neither
+        `charge` nor `current`: the displacement does not depend on them)."""
+        if self.free is not None:
+            return list(self.free)
+        free = list(self.default_free())
+        if targets is not None and not {"charge", "current"} & set(targets):
+            free = [p for p in free if p not in ("capacitance", "coupling")]
+        return free
 
     def _bouc_wen_method(self) -> str:
         o = self.hysteresis_options
@@ -356,7 +368,8 @@ class ModelConfig:
                                         smoothing=f64(smoothing))
         elif self.hysteresis == "bouc_wen":
             v = values.hysteresis()
-            hyst = pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(ho.get("n", 1.0)), f64(v["d"]),
+            n = 1.0 if ho.get("n") is None else ho["n"]
+            hyst = pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(n), f64(v["d"]),
                               smoothing=f64(smoothing), method=self._bouc_wen_method(),
                               substeps=ho.get("substeps", 8))
         elif self.hysteresis == "maxwell_slip":
@@ -372,17 +385,21 @@ class ModelConfig:
         if self.is_observer:
             o = self.observer
             fc = o.get("filter_cutoff")
+            cp = o.get("capacitance_p")
+            if cp is None:
+                cp = values.observer_capacitance() if self.hysteresis == "none" else 0.0
             return pj.ForceDisplacementObserver(
                 f64(o["integrator_capacitance"]), f64(o["reference_capacitance"]), f64(o["leakage_resistance"]),
                 f64(o.get("bias_current", 0.0)), f64(o["force_sensitivity"]), f64(o["displacement_coefficient"]),
-                f64(o["stiffness"]), capacitance_p=f64(o.get("capacitance_p", 0.0)), hysteresis=hyst, creep=creep,
+                f64(o["stiffness"]), capacitance_p=f64(cp), hysteresis=hyst, creep=creep,
                 filter_cutoff=None if fc is None else f64(fc),
             )
         dyn = None
-        if self.dynamics_order:
+        if self.dynamics_order or self.hysteresis == "none":
+            # without hysteresis the dynamics' DC gain is the only scale from volts to metres (order 0: a gain)
             v = values.dynamics()
-            dyn = pj.StableTransferFunction(f64(self.dynamics_options.get("gain", 1.0)), omega=f64(v["omega"]),
-                                            zeta=f64(v["zeta"]), poles=f64(v["poles"]))
+            dyn = pj.StableTransferFunction(f64(values.dynamics_gain()), omega=f64(v["omega"]), zeta=f64(v["zeta"]),
+                                            poles=f64(v["poles"]))
         cap = coup = 0.0
         if self.charge is not None:
             cap, coup = values.charge()
@@ -600,6 +617,8 @@ class _InitialValues:
                 taus = np.maximum(taus, 5 * dt)
                 v = np.concatenate([v for v, _, _ in recs])
                 gain = abs(_chord(v, np.concatenate([y for _, y, _ in recs])))
+                if cfg.hysteresis == "none" and not cfg.is_observer:
+                    gain = 1.0  # the creep acts on the voltage before the dynamics' gain
                 # each lag starts at 1 % of the static gain
                 return {"stiffnesses": np.full(n, 1.0 / max(0.01 * gain, np.finfo(float).tiny)),
                         "time_constants": taus}
@@ -614,6 +633,8 @@ class _InitialValues:
                 dt = min(d for _, _, d in recs)
                 v = np.concatenate([v for v, _, _ in recs])
                 gain = _chord(v, np.concatenate([y for _, y, _ in recs]))
+                if cfg.hysteresis == "none" and not cfg.is_observer:
+                    gain = 1.0
                 return {"gamma": 0.01, "t0": 10 * dt, "gain": gain}
 
             out = self._explicit_or(o, ("gamma", "t0"), make)
@@ -651,6 +672,24 @@ class _InitialValues:
         if n2 == 0:
             out["omega"] = out["zeta"] = np.zeros(0)
         return out
+
+    def _static_gain(self) -> float:
+        recs = self._records()
+        return _chord(np.concatenate([v for v, _, _ in recs]), np.concatenate([y for _, y, _ in recs]))
+
+    def dynamics_gain(self) -> float:
+        """The dynamics' DC gain: explicit, else 1 (the scale sits in the hysteresis), else (no hysteresis) the
+        least-squares slope of the displacement against the voltage."""
+        g = self.config.dynamics_options.get("gain")
+        if g is not None:
+            return g
+        if self.config.hysteresis != "none" or self.dataset is None:
+            return 1.0
+        return self._static_gain()
+
+    def observer_capacitance(self) -> float:
+        """$C_P$ of an observer without hysteresis operator: the slope of the compensated charge against $V$."""
+        return 1e-9 if self.dataset is None else max(self._static_gain(), np.finfo(float).tiny)
 
     def charge(self) -> tuple[float, float]:
         o = self.config.charge
@@ -803,15 +842,15 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     if order is None:
         raise dt_.error(f"missing; allowed values: {', '.join(map(str, DYNAMICS_ORDERS))}", "order")
     n2, n1 = divmod(order, 2)
+    for k, n in (("omega", n2), ("zeta", n2), ("poles", n1)):
+        if n == 0 and k in dt_.data:
+            raise dt_.error(f"not used with order = {order}", k)
     do = {
         "gain": dt_.number("gain", None, nonzero=True),
         "omega": dt_.vector("omega", n2, positive=True),
         "zeta": dt_.vector("zeta", n2, positive=True),
         "poles": dt_.vector("poles", n1, negative=True),
     }
-    for k, n in (("omega", n2), ("zeta", n2), ("poles", n1)):
-        if n == 0 and k in dt_.data:
-            raise dt_.error(f"not used with order = {order}", k)
     do = {k: v for k, v in do.items() if v is not None}
     charge = None
     if "charge" in raw:

@@ -169,7 +169,7 @@ def solve(
     max_steps: int = 200,
     rtol: float = 1e-8,
     atol: float = 1e-10,
-    ftol: float = 1e-10,
+    ftol: float = 1e-8,
     linear_solver: lx.AbstractLinearSolver | None = None,
     progress: bool = True,
     throw: bool = False,

@@ -222,7 +222,7 @@ def _cmd_fit(args) -> int:
     _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}", quiet)
     _info("initial values from the data", quiet)
     params = config.build(dataset)
-    free = config.fit_free()
+    free = config.fit_free(targets)
     max_steps = args.max_steps if args.max_steps is not None else config.max_steps
     _info(f"Levenberg–Marquardt on {', '.join(free)} (first step compiles)", quiet)
     result = fitting.fit(

@@ -1,0 +1,391 @@
+"""The `piezojax` command line end-to-end: fit on CSV/NPZ/HDF5/.mat files, predict, simulate, bad input, Ctrl-C."""
+
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fitting
+import piezojax as pj
+from fitting._config import parse_config
+from fitting.cli import main
+
+DT = 1e-3
+ROOT = Path(__file__).resolve().parents[1]
+
+TRUTH = dict(weights=[2.5e-8, 1.5e-8, 1.0e-8], thresholds=[8.0, 20.0, 35.0], w0=1.0e-7, k=1.25e8, tau=0.3,
+             omega=2 * np.pi * 40.0, zeta=0.3)
+
+# README example 1: PI + Kelvin–Voigt creep + 2nd-order dynamics for displacement data (initial values from data)
+CONFIG = """\
+[hysteresis]
+kind = "prandtl_ishlinskii"
+plays = 3
+
+[creep]
+kind = "kelvin_voigt"
+order = 1
+
+[dynamics]
+order = 2
+
+[fit]
+weights = "range"
+max_steps = 100
+"""
+
+KNOWN = f"""\
+[hysteresis]
+kind = "prandtl_ishlinskii"
+weights = {TRUTH['weights']}
+thresholds = {TRUTH['thresholds']}
+w0 = {TRUTH['w0']}
+
+[creep]
+kind = "kelvin_voigt"
+stiffnesses = [{TRUTH['k']}]
+time_constants = [{TRUTH['tau']}]
+
+[dynamics]
+order = 2
+omega = [{TRUTH['omega']}]
+zeta = [{TRUTH['zeta']}]
+"""
+
+
+def _truth():
+    return pj.Actuator(
+        pj.PrandtlIshlinskii(jnp.asarray(TRUTH["weights"]), jnp.asarray(TRUTH["thresholds"]), w0=TRUTH["w0"]),
+        pj.KelvinVoigtCreep(jnp.asarray([TRUTH["k"]]), jnp.asarray([TRUTH["tau"]]), k0=None),
+        pj.StableTransferFunction(1.0, omega=jnp.asarray([TRUTH["omega"]]), zeta=jnp.asarray([TRUTH["zeta"]])),
+    )
+
+
+def _experiment(i, n, f, noise, name):
+    rng = np.random.default_rng(i)
+    t = np.arange(n) * DT
+    v = (30 + 10 * i) * np.sin(2 * np.pi * f * t) * np.minimum(1, t / 0.2) + 10 * np.sin(2 * np.pi * 3.1 * f * t)
+    y = np.asarray(_truth().simulate(jnp.asarray(v), DT).displacement)
+    return fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y + noise * rng.standard_normal(n), name=name)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    files = []
+    for i, (suffix, f) in enumerate([(".csv", 2.0), (".npz", 3.0), (".h5", 1.5), (".mat", 2.5)]):
+        p = d / f"run{i}{suffix}"
+        fitting.save_experiment(_experiment(i, 1500, f, 1e-9, p.stem), p)
+        files.append(str(p))
+    fitting.save_experiment(_experiment(4, 1500, 1.7, 1e-9, "heldout"), d / "heldout.csv")
+    (d / "pi_creep.toml").write_text(CONFIG)
+    (d / "known.toml").write_text(KNOWN)
+    return d, files
+
+
+@pytest.fixture(scope="module")
+def fitted(work):
+    d, files = work
+    out = d / "fit"
+    rc = main(["fit", str(d / "pi_creep.toml"), *files, "--out", str(out), "--quiet"])
+    return rc, out
+
+
+def test_fit_writes_complete_folder_and_recovers_truth(fitted, work):
+    rc, out = fitted
+    assert rc == 0
+    for name in ("result.json", "model.eqx", "config.toml", "report.txt", "timeseries_run0.png", "loops_run3.png"):
+        assert (out / name).is_file(), name
+    assert (out / "config.toml").read_text() == CONFIG
+    res = json.loads((out / "result.json").read_text())
+    assert res["success"] is True and res["code"] == "successful"
+    assert set(res["metrics"]) == {"run0", "run1", "run2", "run3"}  # one entry per file, any format
+    for m in res["metrics"].values():
+        assert set(m) == {"displacement"}
+        assert m["displacement"]["rmse"] < 1.5e-9  # the noise level (1e-9)
+    p = res["parameters"]
+    assert all(np.isfinite(v["std_error"]) and v["std_error"] > 0 for v in p.values())
+    expect = {
+        **{f"hysteresis.thresholds[{i}]": r for i, r in enumerate(TRUTH["thresholds"])},
+        **{f"hysteresis.weights[{i}]": w for i, w in enumerate(TRUTH["weights"])},
+        "hysteresis.w0": TRUTH["w0"], "creep.stiffnesses[0]": TRUTH["k"], "creep.time_constants[0]": TRUTH["tau"],
+        "dynamics.omega[0]": TRUTH["omega"], "dynamics.zeta[0]": TRUTH["zeta"],
+    }
+    for name, value in expect.items():
+        assert abs(p[name]["value"] / value - 1) < 0.02, (name, p[name]["value"], value)
+    assert res["cli"]["targets"] == ["displacement"] and len(res["cli"]["data"]) == 4
+
+
+def test_predict_matches_direct_api(fitted, work, capsys):
+    rc, out = fitted
+    d, _ = work
+    pred_dir = d / "pred"
+    capsys.readouterr()
+    assert main(["predict", str(out), str(d / "heldout.csv"), "--out", str(pred_dir)]) == 0
+    printed = capsys.readouterr().out
+    # the same numbers by the Python API: rebuild the structure from the saved config, load the fitted values
+    model = fitting.load_model(out, like=parse_config((out / "config.toml").read_text()).build(None))
+    exp = fitting.load_experiment(d / "heldout.csv")
+    y = np.asarray(model.simulate(jnp.asarray(exp.v_in), exp.dt).displacement)
+    direct = fitting.error_metrics(y, exp["displacement"])
+    got = json.loads((pred_dir / "metrics.json").read_text())["metrics"]["heldout"]["displacement"]
+    for k in ("rmse", "nrmse_percent", "max_error_percent"):
+        assert got[k] == pytest.approx(direct[k], rel=1e-9)
+    assert f"RMSE {direct['rmse']:.6e}" in printed and f"NRMSE {direct['nrmse_percent']:.4f} %" in printed
+    written = fitting.load_experiment(pred_dir / "heldout.csv")
+    np.testing.assert_array_equal(written.t, exp.t)
+    np.testing.assert_allclose(written["displacement"], y, rtol=1e-15, atol=0)
+    assert direct["nrmse_percent"] < 0.05  # held out: the fitted model generalises
+
+
+def test_simulate_with_given_parameters(work):
+    d, _ = work
+    out = d / "sim.npz"
+    assert main(["simulate", str(d / "known.toml"), "--input", str(d / "heldout.csv"), "--out", str(out)]) == 0
+    sim = fitting.load_experiment(out)
+    exp = fitting.load_experiment(d / "heldout.csv")
+    truth = np.asarray(_truth().simulate(jnp.asarray(exp.v_in), DT).displacement)
+    np.testing.assert_allclose(sim["displacement"], truth, rtol=1e-12, atol=1e-20)
+
+
+def test_self_sensing_config_builds_the_paper_001_observer(work):
+    # README example 2: the observer with PI + Kelvin–Voigt charge operators; simulate against the direct API
+    d, _ = work
+    cfg_text = """\
+[observer]
+kind = "current_integration"
+integrator_capacitance = 10e-9
+reference_capacitance = 1.5e-9
+leakage_resistance = 1e11
+bias_current = 1e-14
+force_sensitivity = 1.03e-6
+displacement_coefficient = -4.05e-3
+stiffness = 150.0
+filter_cutoff = 10.0
+
+[hysteresis]
+kind = "prandtl_ishlinskii"
+weights = [1e-10, 5e-11]
+thresholds = [2.0, 6.0]
+w0 = 1.6e-9
+
+[creep]
+kind = "kelvin_voigt"
+stiffnesses = [2.9e10]
+time_constants = [10.0]
+
+[fit]
+weights = {displacement = 1e6, force = 1e3}
+"""
+    cfg = parse_config(cfg_text, "selfsensing.toml")
+    assert cfg.outputs == ("displacement", "force") and cfg.inputs == ("v_out",)
+    assert cfg.default_free() == ("hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0", "creep.stiffnesses",
+                                  "creep.time_constants", "force_sensitivity", "displacement_coefficient", "stiffness")
+    (d / "selfsensing.toml").write_text(cfg_text)
+    n = 800
+    t = np.arange(n) * DT
+    v = -20 * np.sin(np.pi * t / 0.8) ** 2
+    v_out = 0.1 * np.sin(2 * np.pi * 3 * t) - 0.01 * v
+    fitting.save_experiment(fitting.Experiment.from_arrays(t=t, v_in=v, v_out=v_out, name="rec"), d / "rec.h5")
+    assert main(["simulate", str(d / "selfsensing.toml"), "--input", str(d / "rec.h5"), "--out",
+                 str(d / "est.csv")]) == 0
+    est = fitting.load_experiment(d / "est.csv")
+    obs = pj.ForceDisplacementObserver(
+        10e-9, 1.5e-9, 1e11, 1e-14, 1.03e-6, -4.05e-3, 150.0,
+        hysteresis=pj.PrandtlIshlinskii(jnp.asarray([1e-10, 5e-11]), jnp.asarray([2.0, 6.0]), w0=1.6e-9),
+        creep=pj.KelvinVoigtCreep(jnp.asarray([2.9e10]), jnp.asarray([10.0]), k0=None), filter_cutoff=10.0)
+    direct = obs(jnp.asarray(v), jnp.asarray(v_out), DT)
+    np.testing.assert_allclose(est["force"], np.asarray(direct.force), rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(est["displacement"], np.asarray(direct.displacement), rtol=1e-12, atol=1e-20)
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+
+
+def _write_csv(path, header, cols):
+    np.savetxt(path, np.column_stack(cols), delimiter=",", header=",".join(header), comments="")
+
+
+def _bad_cases(d):
+    t = np.arange(500) * DT
+    v = 30 * np.sin(2 * np.pi * 2 * t)
+    x = 1e-8 * v
+    _write_csv(d / "nocol.csv", ["t", "displacement"], [t, x])
+    t2 = t.copy()
+    t2[200:] += 0.3 * DT
+    _write_csv(d / "nonuniform.csv", ["t", "v_in", "displacement"], [t2, v, x])
+    _write_csv(d / "nan.csv", ["t", "v_in", "displacement"], [t, v, np.where(np.arange(500) == 17, np.nan, x)])
+    _write_csv(d / "ok.csv", ["t", "v_in", "displacement"], [t, v, x])
+    (d / "badkind.toml").write_text('[hysteresis]\nkind = "preisach"\nplays = 3\n')
+    (d / "badtable.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\n[motor]\norder = 2\n')
+    (d / "badkey.toml").write_text('[creep]\nkind = "kelvin_voigt"\norder = 1\ntau = [1.0]\n')
+    (d / "badorder.toml").write_text('[dynamics]\norder = 7\n')
+    (d / "afile").write_text("not a folder\n")
+    cfg = str(d / "pi_creep.toml")
+    ok = str(d / "ok.csv")
+    return {
+        "missing column": (["fit", cfg, str(d / "nocol.csv")], "required column(s) ['v_in'] missing"),
+        "non-uniform t": (["fit", cfg, str(d / "nonuniform.csv")], "not uniformly sampled"),
+        "NaN": (["fit", cfg, str(d / "nan.csv")], "non-finite value (nan) at row 17"),
+        "unknown block kind": (["fit", str(d / "badkind.toml"), ok], "unknown kind 'preisach'; allowed kinds"),
+        "unknown table": (["fit", str(d / "badtable.toml"), ok], "unknown table or key [motor]"),
+        "unknown key": (["fit", str(d / "badkey.toml"), ok], "unknown key 'tau'"),
+        "bad order": (["fit", str(d / "badorder.toml"), ok], "order: must be one of 0, 1, 2, 3, 4"),
+        "missing data file": (["fit", cfg, str(d / "absent.csv")], "does not exist"),
+        "simulate without values": (["simulate", cfg, "--input", ok], "missing: [hysteresis] weights"),
+        "predict from a non-fit folder": (["predict", str(d), ok], "is not a folder written by `piezojax fit`"),
+    }
+
+
+@pytest.mark.parametrize("case", ["missing column", "non-uniform t", "NaN", "unknown block kind", "unknown table",
+                                  "unknown key", "bad order", "missing data file", "simulate without values",
+                                  "predict from a non-fit folder", "unwritable output", "output parent missing",
+                                  "output exists"])
+def test_bad_input_is_one_line_and_writes_nothing(work, capsys, case):
+    d, files = work
+    cases = _bad_cases(d)
+    if case in cases:
+        argv, expected = cases[case]
+        out = d / "out_bad.csv" if argv[0] == "simulate" else d / "out_bad"
+        argv = argv + ["--out", str(out)]
+    else:
+        out = {"unwritable output": d / "afile" / "sub", "output parent missing": d / "nowhere" / "sub",
+               "output exists": d}[case]
+        expected = {"unwritable output": "is not a directory", "output parent missing": "does not exist",
+                    "output exists": "already exists; pass --overwrite"}[case]
+        argv = ["fit", str(d / "pi_creep.toml"), files[0], "--out", str(out)]
+    capsys.readouterr()
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("piezojax: error: "), err
+    assert expected in lines[0], lines[0]
+    assert "Traceback" not in err
+    if case != "output exists":
+        assert not out.exists()
+    assert not list(d.glob(".out_bad*")) and not list(d.glob(".*tmp-*"))  # no temporary left behind
+
+
+# ---------------------------------------------------------------------------------------------- real processes
+
+
+def _script():
+    exe = shutil.which("piezojax")
+    return [exe] if exe else [sys.executable, "-m", "fitting.cli"]
+
+
+def test_console_script_help_and_error(work, capsys):
+    d, _ = work
+    r = subprocess.run([*_script(), "--help"], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0
+    for word in ("fit", "predict", "simulate", "[hysteresis]", "prandtl_ishlinskii", "[observer]", "[fit]"):
+        assert word in r.stdout
+    r = subprocess.run([*_script(), "fit", str(d / "badkind.toml"), str(d / "ok.csv"), "--out", str(d / "o")],
+                       capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"piezojax: error: {d / 'badkind.toml'}: [hysteresis] kind: unknown kind 'preisach'; allowed kinds: "
+        "prandtl_ishlinskii, bouc_wen, maxwell_slip, none"
+    ]
+    assert not (d / "o").exists()
+    # the same parser in-process: per-command help with examples, one-line usage errors
+    for cmd, words in (("fit", ("--out DIR", "--overwrite", "--max-steps", "examples:", "result.json")),
+                       ("predict", ("--out OUT", "examples:", "metrics.json")),
+                       ("simulate", ("--input FILE", "examples:", "every parameter value"))):
+        assert main([cmd, "--help"]) == 0
+        help_text = capsys.readouterr().out
+        assert all(w in help_text for w in words), (cmd, help_text)
+    assert main(["fit", str(d / "pi_creep.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("piezojax fit: error: the following arguments are required")
+    assert main(["calibrate"]) == 2
+    assert "invalid choice: 'calibrate'" in capsys.readouterr().err
+
+
+def test_ctrl_c_leaves_no_folder_or_a_complete_one(work):
+    d, _ = work
+    # a long record so that each step takes a while; SIGINT as soon as the first step is reported
+    n = 200_000
+    t = np.arange(n) * DT
+    v = 40 * np.sin(2 * np.pi * 0.7 * t) + 15 * np.sin(2 * np.pi * 3.3 * t)
+    y = np.asarray(_truth().simulate(jnp.asarray(v), DT).displacement)
+    fitting.save_experiment(fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y, name="long"), d / "long.npz")
+    (d / "small.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\n[fit]\nmax_steps = 100000\n')
+    out = d / "interrupted"
+    proc = subprocess.Popen([sys.executable, "-m", "fitting.cli", "fit", str(d / "small.toml"), str(d / "long.npz"),
+                             "--out", str(out), "--no-figures"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    seen = b""
+    deadline = time.monotonic() + 300
+    try:
+        while not re.search(rb"step +\d+ +cost", seen):  # the first Levenberg–Marquardt step is done
+            chunk = os.read(proc.stderr.fileno(), 4096)
+            assert chunk, f"process ended before any progress: {seen.decode()}"
+            seen += chunk
+            assert time.monotonic() < deadline, "no progress within 300 s"
+        proc.send_signal(signal.SIGINT)
+        _, rest = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = (seen + rest).decode()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    # interrupted inside the Levenberg–Marquardt loop: the last accepted parameters are saved, complete; an
+    # interrupt that lands while the first result is being summarised or written leaves nothing
+    if out.exists():  # complete: every file, and a summary that says it was interrupted
+        for name in ("result.json", "model.eqx", "config.toml", "report.txt"):
+            assert (out / name).is_file()
+        assert json.loads((out / "result.json").read_text())["code"] == "interrupted"
+    assert not list(d.glob(".interrupted*"))
+
+
+# ---------------------------------------------------------------------------------------------- config parsing
+
+
+@pytest.mark.parametrize("text, expected", [
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\nthresholds = [1.0, 2.0]\n',
+     "[hysteresis] thresholds: must have 3 entries"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\nthresholds = [2.0, 1.0]\n', "strictly ascending"),
+    ('[hysteresis]\nkind = "bouc_wen"\nmethod = "closed_form"\nsmoothing = 0.1\n', "needs smoothing = 0"),
+    ('[hysteresis]\nkind = "maxwell_slip"\nelements = 0\n', "[hysteresis] elements: must be >= 1"),
+    ('[creep]\nkind = "kelvin_voigt"\norder = "two"\n', "[creep] order: must be an integer"),
+    ('[dynamics]\norder = 2\npoles = [-1.0]\n', "[dynamics] poles: not used with order = 2"),
+    ('[dynamics]\norder = 1\npoles = [1.0]\n', "entries must be < 0"),
+    ('[observer]\nkind = "current_integration"\nstiffness = 1.0\n', "missing key(s) integrator_capacitance"),
+    ('[observer]\nkind = "luenberger"\n', "unknown kind 'luenberger'; allowed kinds: current_integration"),
+    ('[dynamics]\norder = 2\n[fit]\nweights = "max"\n', "[fit] weights: unknown value 'max'"),
+    ('[dynamics]\norder = 2\n[fit]\nweights = {strain = 1.0}\n', "unknown channel 'strain'"),
+    ('[dynamics]\norder = 2\n[fit]\ntargets = ["force"]\n', "the model does not predict 'force'"),
+    ('[dynamics]\norder = 2\n[fit]\nsmoothing = [0.1]\n', "needs a hysteresis block"),
+    ('[fit]\nmax_steps = 10\n', "no model blocks"),
+    ('hysteresis = 3\n', "hysteresis must be a table"),
+])
+def test_config_errors_name_table_key_and_allowed_values(text, expected):
+    with pytest.raises(pj.PiezojaxValueError) as e:
+        parse_config(text, "m.toml")
+    msg = str(e.value)
+    assert msg.startswith("m.toml") and expected in msg and "\n" not in msg, msg
+
+
+def test_config_defaults_and_free_sets():
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\n[dynamics]\norder = 3\n[charge]\n', "m.toml")
+    assert cfg.hysteresis_options["plays"] == 10 and cfg.outputs == ("displacement", "charge", "current")
+    assert cfg.default_free() == ("hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0", "dynamics.omega",
+                                  "dynamics.zeta", "dynamics.poles", "capacitance", "coupling")
+    assert "capacitance" not in cfg.fit_free(("displacement",)) and "coupling" in cfg.fit_free(("charge",))
+    model = pj.unwrap(cfg.build(None))  # placeholders of the configured shapes
+    assert model.hysteresis.weights.shape == (10,) and model.dynamics.order == 3 and float(model.dynamics.gain) == 1
+    bw = parse_config('[hysteresis]\nkind = "bouc_wen"\n[fit]\nsmoothing = [0.1, 0.0]\n', "m.toml")
+    assert bw._bouc_wen_method() == "rk4" and "hysteresis.n" in bw.default_free()
+    assert "dynamics.gain" in parse_config('[creep]\nkind = "logarithmic"\n', "m.toml").default_free()
