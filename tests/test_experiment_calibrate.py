@@ -23,7 +23,7 @@ def test_calibrate_quick(tmp_path, capsys):
             band = (r["force"]["min_percent"], r["force"]["max_percent"])
             # both observers are usable: errors of a few % of the 1.1 mN maximum force, not tens
             assert -15 < band[0] < 0 < band[1] < 15, (method, name, band)
-            assert 1.0e-3 < r["force"]["max_force"] < 1.3e-3
+            assert 0.5e-3 < r["force"]["max_force"] < 1.3e-3  # 1.15 mN at -20 V (paper), less at -15 V
             assert np.isfinite(r["displacement"]["rmse_percent"])
     fit = summary["joint_fit"]
     assert fit["cost"] < fit["initial_cost"] and fit["steps"] == 3
