@@ -135,6 +135,7 @@ class FitResult:
             targets=self.problem.targets,
             free=lambda m: m,
             weights={c: 1.0 for c in self.problem.targets},
+            scales="value",
         )
         return prob.experiment_predictions(prob.u0)
 

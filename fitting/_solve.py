@@ -179,8 +179,11 @@ def solve(
 
     Each step linearises the weighted residuals once: the Jacobian is formed by forward mode (`jacobian_chunk`
     parameter directions at a time) and kept as one $p \times m$ matrix (8 × 1e5 samples × 50 parameters in
-    float64: 320 MB). The Levenberg–Marquardt step solves $\min\|J\delta + r\|^2 + \lambda\|\delta\|^2$ with QR
-    (default) in the scaled parameters $u = \theta/s$ of the problem.
+    float64: 320 MB). The Levenberg–Marquardt step solves $\min\|J\delta + r\|^2 + \lambda\|\delta\|^2$ in the
+    scaled parameters $u = \theta/s$ of the problem, by default through the normal equations
+    $(J^\top J + \lambda I)\delta = -J^\top r$ and Cholesky (`lx.Normal(lx.Cholesky())`: measured 6× faster per step
+    than `lx.QR()` on 8 × 2e4 samples × 37 parameters, identical iterates; pass `linear_solver=lx.QR()` for
+    Jacobians too ill-conditioned for the normal equations, $\kappa(J)$ approaching 1e8).
 
     **Arguments:**
 
@@ -190,6 +193,7 @@ def solve(
     - `max_steps`: Levenberg–Marquardt steps per level; `rtol`, `atol`: optimistix's Cauchy termination tolerances
       on the parameters and the residuals; `ftol`: the fit also stops (converged) when five accepted steps lower the
       cost by less than `ftol` relative.
+    - `linear_solver`: the lineax solver of the damped least-squares step (default `lx.Normal(lx.Cholesky())`).
     - `progress`: print step, cost, accepted steps and elapsed time on stderr.
     - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` (not a stationary point: e.g. the trust
       region shrank to nothing around non-finite predictions) is reported as failed (`"not_stationary"`).
@@ -201,7 +205,7 @@ def solve(
     Not itself jit-able (a Python loop, so that progress and Ctrl-C work); each step is one compiled call.
     """
     if linear_solver is None:
-        linear_solver = lx.QR()
+        linear_solver = lx.Normal(lx.Cholesky())
     if max_steps < 1:
         raise PiezojaxValueError(f"`max_steps` must be >= 1, got {max_steps}")
     levels = [None] if smoothing is None else list(smoothing)
@@ -255,7 +259,7 @@ def fit(
     targets=None,
     free=None,
     weights="range",
-    scales=None,
+    scales="jacobian",
     jacobian_chunk=None,
     **solve_options,
 ) -> FitResult:
@@ -268,5 +272,6 @@ def fit(
     print(result.report())
     ```
     """
-    problem = Problem(model, dataset, predictor=predictor, targets=targets, free=free, weights=weights, scales=scales)
+    problem = Problem(model, dataset, predictor=predictor, targets=targets, free=free, weights=weights, scales=scales,
+                      jacobian_chunk=jacobian_chunk)
     return solve(problem, **solve_options)

@@ -58,13 +58,14 @@ def test_jacobian_matches_central_differences(data):
 
 def test_padding_equals_separate_problems(data):
     model = _model()
-    joint = fitting.Problem(model, data, free=["hysteresis.weights"])
+    joint = fitting.Problem(model, data, free=["hysteresis.weights"], scales="value")
     assert len(joint.core.groups) == 1  # one dt, one channel set, lengths in (512, 1024]: padded to 600, vmapped
     long = fitting.Dataset([*data, fitting.Experiment.from_arrays(dt=DT, v_in=np.ones(2000), name="long",
                                                                   displacement=np.ones(2000))])
-    assert len(fitting.Problem(model, long, free=["hysteresis.weights"]).core.groups) == 2
+    assert len(fitting.Problem(model, long, free=["hysteresis.weights"], scales="value").core.groups) == 2
     r_joint = np.asarray(joint.residuals(joint.u0))
-    parts = [np.asarray(fitting.Problem(model, [e], free=["hysteresis.weights"], weights=joint.weights).residuals(
+    parts = [np.asarray(fitting.Problem(model, [e], free=["hysteresis.weights"], weights=joint.weights,
+                                            scales="value").residuals(
         joint.u0)) for e in data]
     n = [e.n for e in data]
     # padded layout: experiment j occupies [j*600, j*600 + n_j); the padding is exactly zero
@@ -76,13 +77,13 @@ def test_padding_equals_separate_problems(data):
 
 def test_free_selection_by_path_and_selector(data):
     model = pj.constrain(_model(), lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
-    p1 = fitting.Problem(model, data, free=["hysteresis.thresholds", "coupling"])
+    p1 = fitting.Problem(model, data, free=["hysteresis.thresholds", "coupling"], scales="value")
     assert p1.parameter_names() == ["hysteresis.thresholds[0]", "hysteresis.thresholds[1]", "coupling"]
     np.testing.assert_allclose(np.asarray(p1.physical(p1.u0)), [10.0, 30.0, 2e-9], rtol=1e-12)
-    p2 = fitting.Problem(model, data, free=lambda m: (m.hysteresis.thresholds, m.coupling))
+    p2 = fitting.Problem(model, data, free=lambda m: (m.hysteresis.thresholds, m.coupling), scales="value")
     assert p2.parameter_names() == p1.parameter_names()
     # default: every parameter except the smoothing
-    p3 = fitting.Problem(model, data)
+    p3 = fitting.Problem(model, data, scales="value")
     assert not any("smoothing" in n for n in p3.parameter_names())
     assert "dynamics.omega[0]" in p3.parameter_names()
     with pytest.raises(PiezojaxValueError, match="no parameter 'hysteresis.gain'.*available: .*hysteresis.weights"):
