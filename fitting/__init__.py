@@ -19,6 +19,7 @@ from ._data import (
     load_experiment as load_experiment,
     save_experiment as save_experiment,
 )
+from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
 from ._io import (
     atomic_directory as atomic_directory,
     atomic_file as atomic_file,

@@ -19,7 +19,6 @@ import scipy.signal
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-
 # ----------------------------------------------------------------------------------------------------------------
 # linear building blocks (NumPy mirrors of the models' exact ZOH recursions)
 
@@ -48,12 +47,19 @@ def _lag_columns(v: np.ndarray, dt: float, taus: np.ndarray) -> np.ndarray:
 
 
 def _filter_pairs(x: np.ndarray, dt: float, omega: np.ndarray, zeta: np.ndarray) -> np.ndarray:
-    r"""Apply the DC-normalised cascade $\prod_i \omega_i^2/(s^2 + 2\zeta_i\omega_i s + \omega_i^2)$, ZOH-sampled
-    from rest, along axis 0 (the sampled system of `StableTransferFunction(1.0, omega, zeta)`)."""
-    for w, z in zip(omega, zeta):
-        num, den, _ = scipy.signal.cont2discrete(([w * w], [1.0, 2 * z * w, w * w]), dt, method="zoh")
-        x = scipy.signal.lfilter(np.ravel(num), den, x, axis=0)
-    return x
+    r"""Apply the DC-normalised cascade $\prod_i \omega_i^2/(s^2 + 2\zeta_i\omega_i s + \omega_i^2)$ along axis 0,
+    from rest, exactly as `StableTransferFunction(1.0, omega, zeta).simulate` (ZOH of the *whole* cascade — not of
+    each section, whose inputs are not piecewise constant): its realisation is discretised by
+    `scipy.signal.cont2discrete` and run as second-order sections."""
+    a, b, c, d = (np.asarray(m, float) for m in pj.StableTransferFunction(1.0, omega=omega, zeta=zeta).state_space())
+    ad, bd, cd, _, _ = scipy.signal.cont2discrete((a, b[:, None], c[None, :], np.zeros((1, 1))), dt, method="zoh")
+    # strictly proper (D = 0): y_k = sum_{i >= 1} b_i u_{k-i}; the one-sample delay is applied explicitly, since a
+    # rounded ~1e-17 leading numerator coefficient would otherwise become a huge spurious zero
+    num, den = scipy.signal.ss2tf(ad, bd, cd, np.zeros((1, 1)))
+    num = np.ravel(num)[1:]
+    sos = scipy.signal.zpk2sos(np.roots(num), np.roots(den), num[0])
+    y = scipy.signal.sosfilt(sos, x, axis=0)
+    return np.concatenate([np.zeros_like(y[:1]), y[:-1]], axis=0)
 
 
 def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -114,7 +120,7 @@ def _clusters(weights: np.ndarray, grid: np.ndarray, n: int, rel: float, log: bo
 
 
 def _arx_lstsq(records, order: int, den: np.ndarray | None):
-    """One equation-error least squares (rows $k \ge n$), on $y$, $u$ prefiltered by $1/A(z)$ when `den` is given."""
+    r"""One equation-error least squares (rows $k \ge n$), on $y$, $u$ prefiltered by $1/A(z)$ when `den` is given."""
     rows, rhs = [], []
     for u, y, _ in records:
         n = y.size
@@ -122,7 +128,9 @@ def _arx_lstsq(records, order: int, den: np.ndarray | None):
             continue
         if den is not None:
             u, y = scipy.signal.lfilter([1.0], den, u), scipy.signal.lfilter([1.0], den, y)
-        cols = [-y[order - i : n - i] for i in range(1, order + 1)] + [u[order - i : n - i] for i in range(1, order + 1)]
+        cols = [-y[order - i : n - i] for i in range(1, order + 1)] + [
+            u[order - i : n - i] for i in range(1, order + 1)
+        ]
         rows.append(np.column_stack(cols))
         rhs.append(y[order:])
     if not rows:
@@ -184,7 +192,8 @@ def _arx_pairs(records, order: int, iterations: int = 20):
 
 def _spectral_pairs(records, order: int):
     r"""Fallback: the empirical frequency response $\hat H(f) = \hat S_{uy}(f)/\hat S_{uu}(f)$ (Welch, pooled over
-    records); the resonance $\omega = 2\pi f_{peak}$ at the largest $|\hat H|$ above the lowest bins, and
+    records); the resonance $\omega = 2\pi f_{peak}$ at the largest $|\hat H|$ above the lowest bins, among the
+    bins where the input power exceeds $10^{-4}$ of its peak, and
     $\zeta$ from the peak height, $|H(\omega)| = 1/(2\zeta)$ for a DC-normalised pair, clipped to $[0.02, 1]$.
     Extra pairs (order > 2) are placed one and two octaves above."""
     dt = records[0][2]
@@ -201,6 +210,8 @@ def _spectral_pairs(records, order: int):
     if f is None:
         return np.full(order // 2, 0.25 * np.pi / dt), np.full(order // 2, 0.5)
     h = np.abs(num) / np.maximum(np.abs(den), np.finfo(float).tiny)
+    # only bins the input excites (elsewhere the ratio is noise over nothing)
+    h = np.where(np.abs(den) > 1e-4 * np.max(np.abs(den)), h, 0.0)
     dc = float(np.median(h[1:4])) if h.size > 4 else 1.0
     k = 4 + int(np.argmax(h[4:])) if h.size > 5 else h.size - 1
     peak = h[k] / max(dc, np.finfo(float).tiny)
@@ -223,7 +234,9 @@ def _records(dataset):
         if exp.has("displacement"):
             recs.append((np.asarray(exp.v_in, float), np.asarray(exp.channels["displacement"], float), float(exp.dt)))
     if not recs:
-        raise PiezojaxValueError("`dataset` has no experiment with a `displacement` channel: nothing to initialise from")
+        raise PiezojaxValueError(
+            "`dataset` has no experiment with a `displacement` channel: nothing to initialise from"
+        )
     return recs
 
 
@@ -264,24 +277,29 @@ def cold_start_actuator(
     unit DC gain, so the static scale sits in the hysteresis and the creep gains). Steps:
 
     1. **Dense linear fit.** Non-negative least squares of the displacement on
-       $[V, P_{\rho_1}[V], \dots, P_{\rho_{gn}}[V], L_{t_1}[V], \dots, L_{t_{gm}}[V]]$ over all records: a dense
-       threshold grid $\rho$ on $(0, \max|V|)$ and a log-spaced time-constant grid $t$ over `tau_range` (default
-       $[5\,dt_{min}, T_{max}/2]$, $T_{max}$ the longest record). Both the PI output and the creep output are
-       linear in their gains for fixed $r$, $\tau$ (the creep gains $c_j = 1/k_j \ge 0$).
-    2. **Thresholds** by `pj.pi_cold_start` on $(V, \delta - \hat{\mathcal C}[V])$ (the dense creep part removed);
-       **time constants** by clustering the dense creep gains on the log-$\tau$ grid into `creep_order` groups
-       (each group's gain-weighted geometric mean).
-    3. **Weights and creep gains** by one non-negative least squares with those $r_i$, $\tau_j$.
+       $G[V], G[P_{\rho_1}[V]], \dots, G[P_{\rho_{gn}}[V]], G[L_{t_1}[V]], \dots, G[L_{t_{gm}}[V]]$ over all
+       records: a threshold grid $\rho$ on $(0, \max|V|)$ and a log-spaced time-constant grid $t$ over
+       `tau_range` (default $[5\,dt_{min}, T_{max}/2]$, $T_{max}$ the longest record), with $G$ the current
+       dynamics estimate ($G = 1$ on the first pass). For fixed $r$, $\tau$ and $G$ the displacement is linear in
+       $w_0, w_i \ge 0$ and the creep gains $c_j = 1/k_j \ge 0$ ($G$ is linear, so
+       $G[\sum_i w_i P_{r_i}[V]] = \sum_i w_i G[P_{r_i}[V]]$).
+    2. **Thresholds and time constants** by clustering the dense gains (as `pj.pi_cold_start` does, on the
+       $G$-filtered columns and with the creep columns in the same solve): runs of active grid points; while there
+       are more than `n_plays` (`creep_order`), the lightest run joins its nearest neighbour; each run gives its
+       gain-weighted mean position (geometric mean for $\tau$).
+    3. **Gains** $w_0, w_i, c_j$ by one non-negative least squares with those $r_i$, $\tau_j$ (through $G$).
     4. **Dynamics** by ARX least squares of $\delta$ on the drive $u = \hat{\mathcal H}[V] + \hat{\mathcal C}[V]$,
        $\delta_k = -\sum_{i \le n_G} a_i\delta_{k-i} + \sum_{i \le n_G} b_i u_{k-i}$ (the ZOH-sampled all-pole
-       $G$ is strictly proper), pooled over the records of the most common $dt$; the discrete poles $z$ map to
-       $s = \ln z/dt$, a complex pair to $\omega = |s|$, $\zeta = -\mathrm{Re}\,s/|s|$, two real poles
-       $p, q < 0$ to $\omega = \sqrt{pq}$, $\zeta = -(p + q)/(2\omega) \ge 1$. **Fallback** when a pole is unstable
-       or on the negative real axis: the peak of the empirical frequency response $S_{uy}/S_{uu}$ (Welch), with
-       $\zeta = 1/(2|H|_{peak})$ clipped to $[0.02, 1]$.
-    5. **Refinement** (`iterations` times): step 3 again with every column passed through the identified $G$
-       ($G$ is linear, so $\delta = \sum w_i G[P_{r_i}[V]] + \dots$ is still linear in the gains), then step 4 on
-       the new drive.
+       $G$ is strictly proper), pooled over the records of the most common $dt$ and refined by Steiglitz–McBride
+       iterations (the same regression on data prefiltered by $1/\hat A(z)$, which removes the output-noise bias
+       of plain ARX); the discrete poles $z$ map to $s = \ln z/dt$, a complex pair to $\omega = |s|$,
+       $\zeta = -\mathrm{Re}\,s/|s|$, two real poles $p, q < 0$ to $\omega = \sqrt{pq}$,
+       $\zeta = -(p + q)/(2\omega) \ge 1$. **Fallback** when a pole is unstable or on the negative real axis: the
+       peak of the empirical frequency response $S_{uy}/S_{uu}$ (Welch), with $\zeta = 1/(2|H|_{peak})$ clipped to
+       $[0.02, 1]$.
+    5. Steps 1–4 are repeated `iterations` times with the new $G$ (the first pass, without dynamics, mistakes
+       resonant ringing for creep and hysteresis; the ARX of step 4 still finds the resonance from that rough
+       drive), then step 3 once more with the final $G$.
 
     The result is wrapped for `fitting.fit`: `weights`, `w0`, creep `stiffnesses`, `time_constants` and dynamics
     `omega`, `zeta` as `pj.Positive`, `thresholds` as `pj.OrderedPositive` (with `constrained=False`, the plain
@@ -301,7 +319,7 @@ def cold_start_actuator(
     - `dynamics_order`: order of $G$, even ($\ge 0$; 0: no dynamics block).
     - `grid_factor`: dense grid sizes are `grid_factor` times the number of plays / lags.
     - `tau_range`: `(tau_min, tau_max)` of the time-constant grid [s].
-    - `iterations`: refinement passes of steps 3–4.
+    - `iterations`: further passes of steps 1–4 through the identified dynamics.
     - `min_weight_fraction`: dense gains below this fraction of the largest count as zero when clustering.
     - `constrained`: return the reparametrised model (default) or the plain one.
 
@@ -312,7 +330,11 @@ def cold_start_actuator(
     result = fitting.fit(init, dataset, free=[...], weights="noise")
     ```
     """
-    for name, value, low in (("n_plays", n_plays, 1), ("creep_order", creep_order, 0), ("dynamics_order", dynamics_order, 0)):
+    for name, value, low in (
+        ("n_plays", n_plays, 1),
+        ("creep_order", creep_order, 0),
+        ("dynamics_order", dynamics_order, 0),
+    ):
         if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < low:
             raise PiezojaxValueError(f"`{name}` must be an integer >= {low}, got {value!r}")
     if dynamics_order % 2:
@@ -405,4 +427,3 @@ def cold_start_free(model) -> list[str]:
     if m.dynamics is not None:
         paths += ["dynamics.omega", "dynamics.zeta"]
     return paths
-
