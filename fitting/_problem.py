@@ -314,6 +314,8 @@ class Problem:
             norms = np.sqrt(np.sum(np.asarray(jt) ** 2, axis=1))
             ok = np.isfinite(norms) & (norms > 0)
             new = np.where(ok, np.asarray(scales) / np.where(ok, norms, 1.0), np.asarray(scales))
+            # powers of two, so that theta0 / s * s == theta0 exactly (the start is the user's model, bit for bit)
+            new = np.exp2(np.round(np.log2(new)))
             scales = jnp.asarray(new, theta0.dtype)
             self.core = eqx.tree_at(lambda c: c.scales, self.core, scales)
         self.theta0 = theta0

@@ -189,6 +189,9 @@ def summarise(
     m, p = problem.num_residuals, problem.num_params
     cost = 0.5 * float(np.sum(r**2))
     s2 = 2 * cost / max(m - p, 1)
+    finite = bool(np.all(np.isfinite(r)) and np.all(np.isfinite(jt)))
+    if not finite:  # e.g. a fit that failed at a non-finite start: no uncertainty can be computed
+        jt = np.zeros_like(jt)
     jtj = jt @ jt.T
     evals, evecs = np.linalg.eigh(jtj)
     top = evals.max() if evals.size else 0.0
@@ -206,6 +209,8 @@ def summarise(
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     condition = float(top / evals.min()) if evals.size and evals.min() > 0 else float("inf")
+    if not finite:
+        se, corr = np.full_like(se, np.nan), np.full_like(corr, np.nan)
     # first-order optimality (MINPACK's gtol test): the largest cosine between the residual and a Jacobian column
     col_norms = np.sqrt(np.sum(jt**2, axis=1))
     rnorm = np.sqrt(np.sum(r**2))
