@@ -202,7 +202,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m experiments.calibrate", description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="results/calibrate", help="output folder (replaced atomically)")
     parser.add_argument("--quick", action="store_true", help="shorter creep record and fewer LM steps (for tests)")
-    parser.add_argument("--max-steps", type=int, default=None, help="Levenberg–Marquardt steps (default 60, quick 8)")
+    parser.add_argument("--max-steps", type=int, default=None, help="Levenberg–Marquardt steps (default 80, quick 8)")
     args = parser.parse_args(argv)
 
     import piezojax as pj
@@ -214,7 +214,8 @@ def main(argv=None) -> int:
     import fitting
 
     out = Path(args.out)
-    fitting.check_writable(out.parent if out.parent != Path("") else Path("."))
+    out.parent.mkdir(parents=True, exist_ok=True)  # e.g. results/ in a fresh clone
+    fitting.check_writable(out)  # before any long work
     t_start = time.perf_counter()
 
     _progress("[1/4] simulating the paper 001 bench records ...")
@@ -228,7 +229,7 @@ def main(argv=None) -> int:
 
     _progress("[3/4] joint Levenberg–Marquardt fit of the whole observer on all training records ...")
     t0 = time.perf_counter()
-    max_steps = args.max_steps or (8 if args.quick else 60)
+    max_steps = args.max_steps or (8 if args.quick else 80)
     result = fitting.fit(joint_start(staged), train, free=JOINT_FREE, weights="range", max_steps=max_steps)
     t_joint = time.perf_counter() - t0
 
