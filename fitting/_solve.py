@@ -133,12 +133,12 @@ def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, ftol, max_st
                 return _Run(y, k, accepted, history, True, "converged (relative change below rtol/atol)", "successful")
             # accepted steps that no longer lower the cost (parameters drifting along a flat valley, e.g. the
             # threshold of a play whose weight is zero) end the fit too
-            if len(history) > window and history[-window - 1] - history[-1] <= ftol * history[-1]:
+            if len(history) > window and history[-window - 1] - history[-1] <= ftol * window * history[-1]:
                 if progress:
                     print(file=sys.stderr)
                 return _Run(y, k, accepted, history, True,
-                            f"converged (cost decreased by less than ftol = {ftol:g} relative over {window} accepted "
-                            "steps)", "successful")
+                            f"converged (mean relative cost decrease per accepted step over the last {window} below "
+                            f"ftol = {ftol:g})", "successful")
             if since >= max_rejections:
                 if progress:
                     print(file=sys.stderr)
@@ -191,8 +191,8 @@ def solve(
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
     - `max_steps`: Levenberg–Marquardt steps per level; `rtol`, `atol`: optimistix's Cauchy termination tolerances
-      on the parameters and the residuals; `ftol`: the fit also stops (converged) when five accepted steps lower the
-      cost by less than `ftol` relative.
+      on the parameters and the residuals; `ftol`: the fit also stops (converged) when the cost decreased by less than
+      `ftol` relative per accepted step, on average over the last five (scipy's `ftol` test, averaged).
     - `linear_solver`: the lineax solver of the damped least-squares step (default `lx.Normal(lx.Cholesky())`).
     - `progress`: print step, cost, accepted steps and elapsed time on stderr.
     - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` (not a stationary point: e.g. the trust
