@@ -158,6 +158,19 @@ class _Table:
             raise self.error(f"entries must be strictly ascending, got {x}", key)
         return a
 
+    def sized_vectors(self, size_key: str, default_size: int, specs: dict[str, dict]) -> tuple[int, list]:
+        """A block of `size_key` elements and its per-element vectors `specs` (name → `vector` options): the size
+        is given, or taken from the vectors given (which must agree), else `default_size`."""
+        n = self.integer(size_key, None, minimum=1)
+        vectors = [self.vector(name, n, **opts) for name, opts in specs.items()]
+        sizes = {len(x) for x in vectors if x is not None}
+        if n is None:
+            if len(sizes) > 1:
+                names = list(specs)
+                raise self.error(f"`{names[0]}` and `{names[1]}` must have the same length", names[0])
+            n = sizes.pop() if sizes else default_size
+        return n, vectors
+
 
 def _kind(source: str, name: str, data, kinds: tuple[str, ...]) -> str:
     if not isinstance(data, Mapping):
@@ -769,22 +782,12 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     if h_kind != "none":
         ho["smoothing"] = ht.number("smoothing", 0.0, nonnegative=True)
     if h_kind == "prandtl_ishlinskii":
-        n = ht.integer("plays", None, minimum=1)
-        w, r = ht.vector("weights", n, positive=True), ht.vector("thresholds", n, positive=True, ascending=True)
-        sizes = {len(x) for x in (w, r) if x is not None}
-        if n is None:
-            if len(sizes) > 1:
-                raise ht.error("`weights` and `thresholds` must have the same length", "weights")
-            n = sizes.pop() if sizes else 10
+        n, (w, r) = ht.sized_vectors("plays", 10, {"weights": dict(positive=True),
+                                                    "thresholds": dict(positive=True, ascending=True)})
         ho.update(plays=n, weights=w, thresholds=r, w0=ht.number("w0", None, positive=True))
     elif h_kind == "maxwell_slip":
-        n = ht.integer("elements", None, minimum=1)
-        k, f = ht.vector("stiffness", n, positive=True), ht.vector("breakaway", n, positive=True)
-        sizes = {len(x) for x in (k, f) if x is not None}
-        if n is None:
-            if len(sizes) > 1:
-                raise ht.error("`stiffness` and `breakaway` must have the same length", "stiffness")
-            n = sizes.pop() if sizes else 8
+        n, (k, f) = ht.sized_vectors("elements", 8, {"stiffness": dict(positive=True),
+                                                      "breakaway": dict(positive=True)})
         ho.update(elements=n, stiffness=k, breakaway=f)
     elif h_kind == "bouc_wen":
         ho.update(A=ht.number("A", None, positive=True), beta=ht.number("beta", None, positive=True),
@@ -802,13 +805,8 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     ct = _Table(source, "creep", c_raw, _CREEP_KEYS[c_kind], c_kind)
     co: dict[str, Any] = {}
     if c_kind == "kelvin_voigt":
-        n = ct.integer("order", None, minimum=1)
-        k, tau = ct.vector("stiffnesses", n, positive=True), ct.vector("time_constants", n, positive=True)
-        sizes = {len(x) for x in (k, tau) if x is not None}
-        if n is None:
-            if len(sizes) > 1:
-                raise ct.error("`stiffnesses` and `time_constants` must have the same length", "stiffnesses")
-            n = sizes.pop() if sizes else 1
+        n, (k, tau) = ct.sized_vectors("order", 1, {"stiffnesses": dict(positive=True),
+                                                     "time_constants": dict(positive=True)})
         co.update(order=n, stiffnesses=k, time_constants=tau)
     elif c_kind == "logarithmic":
         co.update(gamma=ct.number("gamma", None), t0=ct.number("t0", None, positive=True),

@@ -59,11 +59,9 @@ def free_mask(model, free=None):
     parameter); a callable `where(model)` returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of
     path strings (see `parameter_paths`), each naming a parameter or a whole block (`"hysteresis"`).
     """
-    flat, treedef = jtu.tree_flatten_with_path(model, is_leaf=_is_reparam)
-    paths = [_path_string(p) for p, _ in flat]
-    params = [(p, leaf) for p, (_, leaf) in zip(paths, flat) if _is_reparam(leaf) or eqx.is_inexact_array(leaf)]
+    available = list(parameter_paths(model))
     if free is None:
-        chosen = {p for p, _ in params if not (p == "smoothing" or p.endswith(".smoothing"))}
+        chosen = {p for p in available if not (p == "smoothing" or p.endswith(".smoothing"))}
     elif callable(free):
         marker = jtu.tree_map(lambda x: False, model)
         try:
@@ -78,7 +76,6 @@ def free_mask(model, free=None):
         if isinstance(free, str):
             free = [free]
         chosen = set()
-        available = [p for p, _ in params]
         for sel in free:
             if not isinstance(sel, str):
                 raise PiezojaxValueError(f"`free` entries must be parameter paths (str), got {sel!r}")
@@ -97,7 +94,6 @@ def free_mask(model, free=None):
             return jtu.tree_map(lambda x: p in chosen and eqx.is_inexact_array(x), leaf)
         return p in chosen and eqx.is_inexact_array(leaf)
 
-    del treedef
     return jtu.tree_map_with_path(mark, model, is_leaf=_is_reparam)
 
 

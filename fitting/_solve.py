@@ -85,7 +85,7 @@ def _lm_step(solver, core, y, dynamic):
             st.num_accepted_steps, st.num_steps_since_acceptance)
 
 
-def _levenberg_marquardt(problem: Problem, u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
+def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
                          label="", max_rejections=40, window=5) -> _Run:
     solver = _solver(float(rtol), float(atol), linear_solver)
     dynamic, r0 = _lm_init(solver, core, u0)
@@ -222,8 +222,8 @@ def solve(
         if s is not None:
             frozen = set_smoothing(frozen, s)
         label = f"[smoothing {s:g}] " if s is not None else ""
-        core = problem.with_frozen(frozen).core
-        run = _levenberg_marquardt(problem, u, core, rtol=rtol, atol=atol, ftol=ftol, max_steps=max_steps,
+        level = problem.with_frozen(frozen)
+        run = _levenberg_marquardt(u, level.core, rtol=rtol, atol=atol, ftol=ftol, max_steps=max_steps,
                                    linear_solver=linear_solver, progress=progress, label=label)
         runs.append((s, run))
         u = run.u
@@ -232,12 +232,11 @@ def solve(
     final = runs[-1][1]
     # earlier continuation levels may stop at max_steps without failing the fit
     success = final.success and len(runs) == len(levels)
-    reason = final.reason
     result = summarise(
-        problem.with_frozen(frozen),
+        level,
         u,
         success=success,
-        reason=reason,
+        reason=final.reason,
         code=final.code,
         steps=sum(r.steps for _, r in runs),
         accepted=sum(r.accepted for _, r in runs),
