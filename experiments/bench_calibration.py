@@ -24,10 +24,9 @@ Fits, all on the same data, the same residuals $r = w_c(\hat\delta - \delta)$ wi
    reparametrisation: weights, $w_0$, stiffnesses, time constants, $\omega$, $\zeta$ `Positive` (softplus),
    thresholds `OrderedPositive`. The solver works in $u = \theta_{raw}/s$ with $s_j = |\theta_{raw,0,j}|/\|J_j\|$
    (unit Jacobian columns at the start, i.e. scipy's `x_scale="jac"` frozen at the start; passed as `scales=`).
-   Linear solve `lx.Normal(lx.Cholesky())`, the engine's default (`--linear-solver qr` for `lx.QR()`: on this CPU the
-   QR of the 160000 x 37 Jacobian made each LM step ~5x the cost of the Jacobian; the normal equations gave the same
-   iterates in the measured runs). Compilation is measured by a first fit with `max_steps=1` (compile + one step); the
-   timed fit then reuses the
+   The engine linearises only at accepted points, into $J^\top J$ and $J^\top r$, and solves the damped
+   $p \times p$ system by `lx.Cholesky()` (its default; `--linear-solver qr` for `lx.QR()` of that system).
+   Compilation is measured by a first fit with `max_steps=1` (compile + one step); the timed fit then reuses the
    cached compiled steps.
 2. scipy "same u": `scipy.optimize.least_squares(method="trf", jac="2-point", x_scale="jac")` over exactly the same
    vector $u$, start and reparametrisation (written in numpy), the simulation a numba loop of the same discrete model:
@@ -39,8 +38,8 @@ Fits, all on the same data, the same residuals $r = w_c(\hat\delta - \delta)$ wi
 Before fitting, the numba simulation is checked against `pj.Actuator.simulate` (max |difference| / range) and the
 engine's Jacobian against central finite differences of its residuals. Printed: wall and CPU (process) time,
 final cost, Jacobians (LM steps; scipy `njev`), residual evaluations (scipy `nfev`) and numba simulation calls
-(including finite differences), the speed ratios, and a profile (one Jacobian, one residual, a QR of $J$, the LM
-time per step). On a shared machine, CPU time is the steadier measure.
+(including finite differences), the speed ratios, and a profile (one Jacobian, one residual, one linearisation
+$J^\top J, J^\top r$, the LM time per step). On a shared machine, CPU time is the steadier measure.
 """
 
 import argparse
@@ -416,7 +415,7 @@ def run(
         t0, c0 = time.perf_counter(), time.process_time()
         import lineax as lx
 
-        solver = lx.QR() if linear_solver == "qr" else lx.Normal(lx.Cholesky())
+        solver = lx.QR() if linear_solver == "qr" else lx.Cholesky()
         r = fitting.fit(params0, ds, free=FREE, weights="range", scales=jnp.asarray(fit_scales), max_steps=steps,
                         progress=progress, linear_solver=solver)
         return r, time.perf_counter() - t0, time.process_time() - c0
@@ -440,8 +439,7 @@ def run(
     u_fit = jnp.asarray(fr.u)
     results["jax_jacobian_s"] = _best(lambda: jax.block_until_ready(problem.residuals_and_jacobian(u_fit)), 3)
     results["jax_residuals_s"] = _best(lambda: jax.block_until_ready(res_fn(u_fit)), 3)
-    Jn = np.asarray(problem.residuals_and_jacobian(u_fit)[1]).T
-    results["qr_s"] = _best(lambda: np.linalg.qr(Jn), 3)
+    results["normal_equations_s"] = _best(lambda: jax.block_until_ready(problem.normal_equations(u_fit)), 3)
 
     # --- (2) scipy, same parametrisation ---------------------------------------------------------------------------
     if not run_scipy:
@@ -485,7 +483,8 @@ def run(
     rows = [("warm", "compiled"), ("cold", "incl. compile")] if warm_run else [("cold", "incl. compile")]
     for label, note in rows:
         print(f"  piezojax fitting.fit ({note})".ljust(39) + f"{results[f'jax_{label}_wall_s']:8.2f} "
-              f"{results[f'jax_{label}_cpu_s']:8.2f}  {r.cost:.6e} {r.steps:7d} {r.steps:7d} {'-':>9s}  "
+              f"{results[f'jax_{label}_cpu_s']:8.2f}  {r.cost:.6e} {r.accepted_steps + 1:7d} "
+              f"{r.steps + 1:7d} {'-':>9s}  "
               f"LM loop {r.seconds:.2f} s, {r.accepted_steps} accepted, {r.code}")
     for key, label in (("scipy_u", "same u"), ("scipy_b", "bounds")):
         if f"{key}_wall_s" in results:
@@ -506,7 +505,7 @@ def run(
     print("\n  profile (warm, at the optimum):")
     _line("one residual evaluation (jit)", f"{results['jax_residuals_s'] * 1e3:.1f} ms")
     _line("one residuals + Jacobian (engine, jit)", f"{results['jax_jacobian_s'] * 1e3:.1f} ms")
-    _line("numpy QR of the Jacobian (m x p)", f"{results['qr_s'] * 1e3:.1f} ms")
+    _line("one linearisation J^T J, J^T r (engine, jit)", f"{results['normal_equations_s'] * 1e3:.1f} ms")
     _line("LM wall per step (warm solve / steps)", f"{fr.seconds / max(fr.steps, 1) * 1e3:.1f} ms")
     if warm_run:
         _line("compile: warm-up fit with max_steps=1 (compile + 1 step), wall",

@@ -159,26 +159,70 @@ class ProblemCore(eqx.Module):
         return jnp.concatenate(parts)
 
     def jacobian_t(self, u):
+        """$J^\\top$, shape `(p, m)`, by forward mode (all directions at once). Holds the whole Jacobian: for long
+        records prefer `normal_equations`."""
         eye = jnp.eye(u.size, dtype=u.dtype)
-        col = lambda e: jax.jvp(self.residuals, (u,), (e,))[1]  # noqa: E731
-        if self.chunk is None or self.chunk >= u.size:
-            return jax.vmap(col)(eye)
-        return jax.lax.map(col, eye, batch_size=int(self.chunk))
+        return jax.vmap(lambda e: jax.jvp(self.residuals, (u,), (e,))[1])(eye)
+
+    def chunk_size(self, g: _Group, p: int) -> int:
+        """Experiments of group `g` whose Jacobian is formed at once (`chunk`, or by the memory budget)."""
+        b = len(g.index)
+        if self.chunk is not None:
+            return max(1, min(b, self.chunk))
+        m_e = sum(int(g.masks[c].shape[1]) for c in g.targets)
+        itemsize = jnp.dtype(g.data.v_in.dtype).itemsize
+        return max(1, min(b, _JACOBIAN_BUDGET // max(1, m_e * p * itemsize)))
+
+    def normal_equations(self, u):
+        r"""`(r, g, H)`: the weighted residuals (as `residuals`), $g = J^\top r$ and $H = J^\top J$.
+
+        $J$ is formed by forward mode (one JVP per parameter direction, batched), one chunk of experiments at a
+        time, and reduced to $g$ and $H$ at once: no $m \times p$ matrix is kept, so the memory is one chunk's
+        Jacobian (`chunk_size`) plus $p^2$, whatever the number of experiments."""
+        p = u.size
+        eye = jnp.eye(p, dtype=u.dtype)
+        weights = dict(self.weights)
+        r_parts, g_sum, h_sum = [], jnp.zeros((p,), u.dtype), jnp.zeros((p, p), u.dtype)
+        for grp in self.groups:
+            d = grp.data
+
+            def one(x, grp=grp, dt=d.dt):
+                t, v_in, channels, targets, masks = x
+                data = ExperimentArrays(t=t, dt=dt, v_in=v_in, channels=channels)
+
+                def res(v):
+                    pred = self.predictor(self.model_at(v), data)
+                    return jnp.concatenate(
+                        [jnp.where(masks[c], (pred[c] - targets[c]) * weights[c], 0.0) for c in grp.targets]
+                    )
+
+                r, jt = jax.vmap(lambda e: jax.jvp(res, (u,), (e,)), out_axes=(None, 0))(eye)
+                return r, jt @ r, jt @ jt.T
+
+            xs = (d.t, d.v_in, d.channels, grp.targets, grp.masks)
+            b, bs = len(grp.index), self.chunk_size(grp, p)
+            r, gs, hs = jax.vmap(one)(xs) if bs >= b else jax.lax.map(one, xs, batch_size=bs)
+            g_sum, h_sum = g_sum + jnp.sum(gs, axis=0), h_sum + jnp.sum(hs, axis=0)
+            n = d.v_in.shape[1]
+            # back to the layout of `residuals`: channel by channel, experiments stacked
+            r_parts += [jnp.ravel(r[:, i * n : (i + 1) * n]) for i in range(len(grp.targets))]
+        return jnp.concatenate(r_parts), g_sum, h_sum
 
 
-@jax.custom_jvp
-def linearised_residuals(u, core: ProblemCore):
-    """`core.residuals(u)` with a custom JVP (in `u` only; `core` is data): the JVP forms $J^\\top$ once by
-    forward mode (`core.chunk` directions at a time) and applies it as a matrix, so `jax.linearize` — what
-    Levenberg–Marquardt does each step — costs one Jacobian, and every later product with $J$ or $J^\\top$ is a
-    matrix product."""
-    return core.residuals(u)
+# the forward-mode Jacobian of one chunk of experiments is kept under this many bytes when `chunk` is None
+_JACOBIAN_BUDGET = 256 * 2**20
 
 
-@linearised_residuals.defjvp
-def _linearised_residuals_jvp(primals, tangents):
-    (u, core), (du, _) = primals, tangents
-    return core.residuals(u), du @ core.jacobian_t(u)
+@eqx.filter_jit
+def _normal_equations_batch(core: ProblemCore, u):
+    """`core.normal_equations` for each row of `u` (shape `(starts, p)`), under `vmap`."""
+    return jax.vmap(core.normal_equations)(u)
+
+
+def _normal_equations(core: ProblemCore, u):
+    # through the batched function with one start: the same compiled code as a single-start fit
+    r, g, h = _normal_equations_batch(core, u[None])
+    return r[0], g[0], h[0]
 
 
 @eqx.filter_jit
@@ -230,8 +274,10 @@ class Problem:
       $s_j = 1/\|\partial r/\partial\theta_j\|$ (scipy's `x_scale="jac"` frozen at the start; measured ≈ 3× fewer
       steps than value scaling on a PI + creep + dynamics fit); `"value"`: $s = |\theta_0|$ (1 where $\theta_0 = 0$);
       or an array. A parameter without effect at the start (zero column) falls back to value scaling.
-    - `jacobian_chunk`: forward-mode directions evaluated at once when forming the Jacobian (`None`: all); lowers
-      the peak memory of the forward-mode intermediates, not of the Jacobian itself ($m \times p$ floats).
+    - `jacobian_chunk`: experiments whose Jacobian is formed at once when the solver builds $J^\top J$ and
+      $J^\top r$ (`normal_equations`); `None` (default): as many as keep that chunk's Jacobian under 256 MiB. The
+      whole $m \times p$ Jacobian is never kept, so the memory of a fit does not grow with the number of
+      experiments; a smaller chunk lowers it further, at some cost in speed (fewer experiments vectorised).
     """
 
     def __init__(
@@ -306,8 +352,8 @@ class Problem:
                                 tuple(self.weights.items()), jacobian_chunk)
         if by_jacobian:
             # unit columns at the start (one Jacobian, compiled once and reused by the results' covariance)
-            _, jt = _residuals_and_jacobian(self.core, theta0 / scales)
-            norms = np.sqrt(np.sum(np.asarray(jt) ** 2, axis=1))
+            _, _, jtj = _normal_equations(self.core, theta0 / scales)
+            norms = np.sqrt(np.clip(np.diag(np.asarray(jtj)), 0.0, None))
             ok = np.isfinite(norms) & (norms > 0)
             new = np.where(ok, np.asarray(scales) / np.where(ok, norms, 1.0), np.asarray(scales))
             # powers of two, so that theta0 / s * s == theta0 exactly (the start is the user's model, bit for bit)
@@ -429,6 +475,21 @@ class Problem:
                 out[_path_string(path)] = leaf
         return out
 
+    def u_of(self, model, name: str = "model") -> Float[Array, " p"]:
+        """The scaled free parameters `u` of `model`, a model of the same structure as the problem's (same blocks,
+        shapes and reparametrisation wrappers: e.g. the initial model with other values)."""
+        if jtu.tree_structure(model) != jtu.tree_structure(self.model):
+            raise PiezojaxValueError(
+                f"`{name}` does not have the structure of the problem's model (same blocks, parameter shapes and "
+                "reparametrisations, e.g. `pj.constrain` applied the same way)"
+            )
+        leaves = jtu.tree_leaves(eqx.filter(model, self.mask))
+        shapes = tuple(tuple(jnp.shape(x)) for x in leaves)
+        if shapes != self.core.unflatten.shapes:
+            raise PiezojaxValueError(f"`{name}`: free parameter shapes {shapes}, expected {self.core.unflatten.shapes}")
+        theta = jnp.concatenate([jnp.ravel(jnp.asarray(x, self.theta0.dtype)) for x in leaves])
+        return theta / self.scales
+
     def physical(self, u: Float[Array, " p"]) -> Float[Array, " q"]:
         """The free parameters in physical (constrained) units, flattened in `parameter_names` order."""
         tree = self._free_physical_tree(self.params(u))
@@ -442,13 +503,18 @@ class Problem:
         return _residuals(self.core, u)
 
     def jacobian_t(self, u: Float[Array, " p"]) -> Float[Array, "p m"]:
-        """$J^\\top$ (shape `(p, m)`) by forward mode, `jacobian_chunk` directions at a time. Peak memory ≈ `m × p`
-        floats plus one chunk's forward-mode intermediates."""
+        """$J^\\top$ (shape `(p, m)`) by forward mode: the whole Jacobian, `m × p` floats (the solver itself only
+        forms `normal_equations`)."""
         return self.core.jacobian_t(u)
 
     def residuals_and_jacobian(self, u: Float[Array, " p"]) -> tuple[Array, Array]:
         """`(residuals(u), jacobian_t(u))`, compiled (cached across problems of the same structure)."""
         return _residuals_and_jacobian(self.core, u)
+
+    def normal_equations(self, u: Float[Array, " p"]) -> tuple[Array, Array, Array]:
+        """`(r, J^T r, J^T J)` at `u`, compiled, formed `jacobian_chunk` experiments at a time without keeping $J$
+        (what each Levenberg–Marquardt linearisation computes)."""
+        return _normal_equations(self.core, u)
 
     def experiment_predictions(self, u: Float[Array, " p"]) -> list[dict[str, np.ndarray]]:
         """Per experiment (dataset order), the predicted target channels at `u`, unpadded NumPy arrays."""

@@ -45,6 +45,8 @@ class FitResult:
       `gradient_cosine`: $\\max_i |\\cos(r, J_{:,i})|$, ≈ 0 at a stationary point (a fit that stops with it above
       `gtol` is reported as failed, code `"not_stationary"`).
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
+    - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
+      `reason`, `steps`, and `best` (the one reported); `None` otherwise.
     - `problem`: the `Problem` (not saved).
     """
 
@@ -69,6 +71,7 @@ class FitResult:
     num_residuals: int
     num_params: int
     metrics: dict[str, dict[str, dict[str, float]]]
+    starts: list[dict] | None = None
     problem: Any = dataclasses.field(repr=False, default=None)
     u: Any = dataclasses.field(repr=False, default=None)
 
@@ -95,6 +98,7 @@ class FitResult:
             "correlation": np.asarray(self.correlation).tolist(),
             "metrics": self.metrics,
             "history": self.history,
+            "starts": self.starts,
         }
 
     def report(self) -> str:
@@ -103,8 +107,13 @@ class FitResult:
             f"fit {'converged' if self.success else 'FAILED'}: {self.reason}",
             f"  steps {self.steps} ({self.accepted_steps} accepted), cost {self.initial_cost:.6e} -> "
             f"{self.cost:.6e}, {self.seconds:.1f} s, {self.num_residuals} residuals, {self.num_params} parameters",
-            "parameters (value ± standard error):",
         ]
+        if self.starts:
+            ok = sum(st["success"] for st in self.starts)
+            lines.append(f"  multi-start: {len(self.starts)} starts, {ok} converged; final costs "
+                         + ", ".join(f"{st['cost']:.4e}{'*' if st['best'] else ''}" for st in self.starts)
+                         + " (* reported)")
+        lines.append("parameters (value ± standard error):")
         w = max(len(n) for n in self.parameter_names)
         for n, v, s in zip(self.parameter_names, self.values, self.std_errors):
             rel = f"({100 * s / abs(v):.2g} %)" if v != 0 and np.isfinite(s) else ""
@@ -185,14 +194,13 @@ def summarise(
     problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2
 ) -> FitResult:
     """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
-    r, jt = (np.asarray(x) for x in problem.residuals_and_jacobian(u))
+    r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
     m, p = problem.num_residuals, problem.num_params
     cost = 0.5 * float(np.sum(r**2))
     s2 = 2 * cost / max(m - p, 1)
-    finite = bool(np.all(np.isfinite(r)) and np.all(np.isfinite(jt)))
+    finite = bool(np.all(np.isfinite(r)) and np.all(np.isfinite(jtj)) and np.all(np.isfinite(jtr)))
     if not finite:  # e.g. a fit that failed at a non-finite start: no uncertainty can be computed
-        jt = np.zeros_like(jt)
-    jtj = jt @ jt.T
+        jtr, jtj = np.zeros_like(jtr), np.zeros_like(jtj)
     evals, evecs = np.linalg.eigh(jtj)
     top = evals.max() if evals.size else 0.0
     keep = evals > top * 1e-14 * p
@@ -212,10 +220,10 @@ def summarise(
     if not finite:
         se, corr = np.full_like(se, np.nan), np.full_like(corr, np.nan)
     # first-order optimality (MINPACK's gtol test): the largest cosine between the residual and a Jacobian column
-    col_norms = np.sqrt(np.sum(jt**2, axis=1))
+    col_norms = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
     rnorm = np.sqrt(np.sum(r**2))
     with np.errstate(invalid="ignore", divide="ignore"):
-        cosines = np.abs(jt @ r) / (col_norms * rnorm)
+        cosines = np.abs(jtr) / (col_norms * rnorm)
     gradient_cosine = float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
     if success and gradient_cosine > gtol:
         success, code = False, "not_stationary"

@@ -56,6 +56,95 @@ def test_jacobian_matches_central_differences(data):
     assert np.allclose(np.asarray(r), np.asarray(res(u)))
 
 
+def test_normal_equations_equal_the_full_jacobian_for_any_chunk():
+    # two channels, two groups (lengths in different power-of-2 brackets), chunks of 1, 2 and all experiments
+    model = pj.constrain(_model(smoothing=0.1), lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    rng = np.random.default_rng(3)
+    exps = []
+    for i, n in enumerate((300, 280, 270, 700)):
+        t = np.arange(n) * DT
+        v = (20 + 10 * i) * np.sin(2 * np.pi * (3 + i) * t)
+        out = pj.unwrap(model).simulate(v, DT)
+        exps.append(fitting.Experiment.from_arrays(
+            t=t, v_in=v, name=f"e{i}", displacement=np.asarray(out.displacement) + 1e-3 * rng.standard_normal(n),
+            charge=np.asarray(out.charge) * (1 + 1e-3 * rng.standard_normal(n))))
+    ds = fitting.Dataset(exps)
+    free = ["hysteresis.weights", "hysteresis.thresholds", "dynamics.omega", "capacitance"]
+    ref = fitting.Problem(model, ds, free=free)
+    assert len(ref.core.groups) == 2
+    u = ref.u0 * 1.02
+    r, jt = (np.asarray(x) for x in ref.residuals_and_jacobian(u))
+    for chunk in (None, 1, 2):
+        prob = fitting.Problem(model, ds, free=free, jacobian_chunk=chunk)
+        rn, g, h = (np.asarray(x) for x in prob.normal_equations(u))
+        np.testing.assert_allclose(rn, r, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(g, jt @ r, rtol=1e-10, atol=1e-12 * np.abs(jt @ r).max())
+        np.testing.assert_allclose(h, jt @ jt.T, rtol=1e-10, atol=1e-12 * np.abs(h).max())
+
+
+def test_steps_are_those_of_optimistix_levenberg_marquardt(data):
+    # the normal-equation loop (linearising only at accepted points) is optx.LevenbergMarquardt's algorithm: after k
+    # trials it stands where optimistix stands after k + 1 steps (its first step only evaluates the start)
+    import optimistix as optx
+
+    model = pj.constrain(_model(smoothing=0.1), lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    start = eqx.tree_at(lambda m: m.dynamics.omega, model, model.dynamics.omega * 1.3)
+    prob = fitting.Problem(start, data, free=["hysteresis.w0", "hysteresis.weights", "hysteresis.thresholds",
+                                              "dynamics.omega", "dynamics.zeta"])
+    core = prob.core
+
+    @jax.custom_jvp
+    def residuals(u):  # J from forward mode as a matrix (optimistix's own linearisation trips a batched error check)
+        return core.residuals(u)
+
+    @residuals.defjvp
+    def _residuals_jvp(primals, tangents):
+        return core.residuals(primals[0]), tangents[0] @ core.jacobian_t(primals[0])
+
+    res_fn = jax.jit(lambda u, _: residuals(u))
+    for k in (3, 9):
+        ours = fitting.solve(prob, max_steps=k, ftol=0.0, progress=False)
+        ref = optx.least_squares(res_fn, optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10), prob.u0, max_steps=k + 1,
+                                 throw=False)
+        assert ours.steps == k and ours.code == "max_steps_reached"
+        np.testing.assert_allclose(np.asarray(ours.u), np.asarray(ref.value), rtol=1e-7, atol=1e-9)
+        assert ours.accepted_steps == int(ref.state.num_accepted_steps) - 1
+
+
+def test_multistart_runs_each_start_as_alone_and_reports_the_best(data):
+    def guarded(m, d):  # predictions are NaN for w0 > 5: a start there fails at once
+        y = m.simulate(d.v_in, d.dt).displacement
+        return {"displacement": jnp.where(m.hysteresis.w0 > 5.0, jnp.nan, 1.0) * y}
+
+    pred = fitting.Predictor(guarded, ("displacement",))
+    model = _model()
+    free = ["hysteresis.w0", "hysteresis.weights", "dynamics.omega"]
+    starts = [
+        eqx.tree_at(lambda m: m.dynamics.omega, model, model.dynamics.omega * 1.2),
+        eqx.tree_at(lambda m: m.hysteresis.w0, model, jnp.asarray(10.0)),
+        eqx.tree_at(lambda m: (m.hysteresis.w0, m.hysteresis.weights), model,
+                    (jnp.asarray(0.7), jnp.array([0.1, 0.4]))),
+    ]
+    prob = fitting.Problem(model, data, predictor=pred, free=free)
+    res = fitting.solve(prob, starts=starts, progress=False)
+    assert [st["code"] for st in res.starts][1] == "nonfinite_initial"
+    ok = [i for i, st in enumerate(res.starts) if st["success"]]
+    assert ok == [0, 2]
+    best = min(ok, key=lambda i: res.starts[i]["cost"])
+    assert res.starts[best]["best"] and res.success and res.cost == pytest.approx(res.starts[best]["cost"], rel=1e-12)
+    assert "multi-start: 3 starts, 2 converged" in res.report()
+    # each start in the batch takes the same steps as a fit from it alone
+    for i in ok:
+        alone = fitting.solve(fitting.Problem(starts[i], data, predictor=pred, free=free, scales=prob.scales),
+                              progress=False)
+        assert alone.steps == res.starts[i]["steps"]
+        assert alone.cost == pytest.approx(res.starts[i]["cost"], rel=1e-9)
+    with pytest.raises(PiezojaxValueError, match=r"`starts\[0\]` does not have the structure"):
+        fitting.solve(prob, starts=[pj.constrain(model, lambda m: m.hysteresis.w0, pj.Positive)], progress=False)
+    with pytest.raises(PiezojaxValueError, match="`starts` must list at least one"):
+        fitting.solve(prob, starts=[], progress=False)
+
+
 def test_padding_equals_separate_problems(data):
     model = _model()
     joint = fitting.Problem(model, data, free=["hysteresis.weights"], scales="value")
