@@ -1,11 +1,14 @@
 """Kelvin–Voigt creep chain: a static compliance plus a sum of first-order lags."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, check_scalar, check_vector, common_float_dtype
+from .._hysteresis.play import _tangent_or_none
 from .base import AbstractCreep, check_positive, error_if_not_positive
 
 
@@ -27,6 +30,57 @@ def _foh_psi(x: Array) -> Array:
     xl = jnp.where(small, 1.0, x)
     direct = (xl + jnp.expm1(-xl)) / (xl * xl)
     return jnp.where(small, series, direct)
+
+
+@jax.custom_jvp
+def lag_scan(a: Array, b0: Array, b1: Array, c: Array, u: Array, u_next: Array) -> Array:
+    r"""Diagonal first-order lags from rest: $x_{k+1} = a \odot x_k + b_0 \odot u_k + b_1 \odot u^{+}_k$,
+    $x_0 = 0$; returns $y_k = c \cdot x_k$ (shape `(time,)`; `a`, `b0`, `b1`, `c`: shape `(lags,)`).
+
+    Derivatives are hand-derived forward sensitivities: one scan computes $X^a = \partial x/\partial a$,
+    $X^{b_0}$, $X^{b_1}$ (independent of the number of tangent directions), and the output tangent is
+    $\dot y_k = x_k \cdot \dot c
+    + \sum_l c_l (X^a_{k,l}\dot a_l + X^{b_0}_{k,l}\dot b_{0,l} + X^{b_1}_{k,l}\dot b_{1,l})$ plus
+    the lags applied to the input tangents (a scan of its own, skipped when they are symbolic zeros, i.e. for
+    measured inputs). Under `jax.jacfwd` the parameter directions are then a matrix product, not a batched scan body.
+    """
+
+    def step(x, uu):
+        return a * x + b0 * uu[0] + b1 * uu[1], jnp.sum(c * x)
+
+    _, y = jax.lax.scan(step, jnp.zeros_like(c), jnp.stack([u, u_next], axis=1))
+    return y
+
+
+@functools.partial(lag_scan.defjvp, symbolic_zeros=True)
+def _lag_scan_jvp(primals, tangents):
+    a, b0, b1, c, u, u_next = primals
+    da, db0, db1, dc, du, du_next = (_tangent_or_none(t) for t in tangents)
+
+    def step(carry, uu):
+        x, xa, x0, x1 = carry
+        uk, uk1 = uu[0], uu[1]
+        new = (a * x + b0 * uk + b1 * uk1, a * xa + x, a * x0 + uk, a * x1 + uk1)
+        return new, jnp.stack(carry)
+
+    zero = jnp.zeros_like(c)
+    _, states = jax.lax.scan(step, (zero, zero, zero, zero), jnp.stack([u, u_next], axis=1))
+    x = states[:, 0]  # (time, lags)
+    y = x @ c
+    # the parameter directions: one product of the (time, 4 * lags) sensitivities with the stacked tangents
+    coeffs = [jnp.zeros_like(c) if dc is None else dc]
+    for d in (da, db0, db1):
+        coeffs.append(jnp.zeros_like(c) if d is None else c * d)
+    dy = states.reshape(states.shape[0], -1) @ jnp.concatenate(coeffs)
+    if du is not None or du_next is not None:
+        du = jnp.zeros_like(u) if du is None else du
+        du_next = jnp.zeros_like(u) if du_next is None else du_next
+
+        def tangent_step(z, uu):
+            return a * z + b0 * uu[0] + b1 * uu[1], jnp.sum(c * z)
+
+        dy = dy + jax.lax.scan(tangent_step, zero, jnp.stack([du, du_next], axis=1))[1]
+    return y, dy
 
 
 class KelvinVoigtCreep(AbstractCreep):
@@ -102,20 +156,12 @@ class KelvinVoigtCreep(AbstractCreep):
         c = 1 / self.stiffnesses
         # Elementwise products only in the scan body: under jacfwd a (batched) dot_general in a scan body costs
         # ~5 µs per step on XLA:CPU, elementwise ~0.1 µs (measured in experiments/bench_dynamics.py).
+        # `lag_scan` carries hand-derived sensitivities: under `jax.jacfwd` its parameter directions are one matrix
+        # product instead of a scan body batched over every direction of the whole model.
         if hold == "zoh":
-
-            def step(state, uk):
-                return a * state + one_minus_a * uk, jnp.sum(c * state)
-
-            _, lagged = jax.lax.scan(step, jnp.zeros_like(c), u)
+            lagged = lag_scan(a, one_minus_a, jnp.zeros_like(a), c, u, u)
         else:
             b1 = x * _foh_psi(x)
-            b0 = one_minus_a - b1
             u_next = jnp.concatenate([u[1:], u[-1:]])  # the last update is never output
-
-            def step(state, uu):
-                uk, uk1 = uu[0], uu[1]
-                return a * state + b0 * uk + b1 * uk1, jnp.sum(c * state)
-
-            _, lagged = jax.lax.scan(step, jnp.zeros_like(c), jnp.stack([u, u_next], axis=1))
+            lagged = lag_scan(a, one_minus_a - b1, b1, c, u, u_next)
         return self._c0(u.dtype) * u + lagged
