@@ -37,7 +37,8 @@ class FitResult:
       reparametrisation wrappers (start a further fit from it).
     - `success`, `reason`, `code`: convergence verdict and why (`"successful"`, `"max_steps_reached"`, `"stalled"`,
       `"interrupted"`, `"nonfinite_initial"`, ...); `steps`, `accepted_steps`, `initial_cost`, `cost`
-      ($\\tfrac12\\|r\\|^2$ of the weighted residuals), `history` (accepted costs), `seconds`, `levels` (per
+      ($\\tfrac12\\|r\\|^2$ of the weighted residuals), `history` (the start's and every accepted cost),
+      `history_steps` (the step at which each was reached, counted over all levels), `seconds`, `levels` (per
       smoothing level).
     - `parameter_names`, `values`, `std_errors`, `correlation`: the free parameters in physical units with their
       Gauss–Newton standard errors $\\sqrt{\\mathrm{diag}(D\\,s^2(J^\\top J)^{+}D^\\top)}$, $s^2 = \\|r\\|^2/(m - p)$,
@@ -60,6 +61,7 @@ class FitResult:
     initial_cost: float
     cost: float
     history: list[float]
+    history_steps: list[int]
     seconds: float
     levels: list[dict]
     parameter_names: list[str]
@@ -98,6 +100,7 @@ class FitResult:
             "correlation": np.asarray(self.correlation).tolist(),
             "metrics": self.metrics,
             "history": self.history,
+            "history_steps": self.history_steps,
             "starts": self.starts,
         }
 
@@ -191,7 +194,7 @@ def load_summary(path) -> dict:
 
 
 def summarise(
-    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2
+    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2, history_steps=None
 ) -> FitResult:
     """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
     r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
@@ -246,6 +249,7 @@ def summarise(
         initial_cost=float(history[0]) if history else cost,
         cost=cost,
         history=[float(h) for h in history],
+        history_steps=list(range(len(history))) if history_steps is None else [int(k) for k in history_steps],
         seconds=float(seconds),
         levels=levels,
         parameter_names=problem.parameter_names(),

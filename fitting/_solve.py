@@ -44,6 +44,7 @@ class _Run:
     steps: int
     accepted: int
     history: list
+    history_steps: list
     success: bool
     reason: str
     code: str
@@ -116,6 +117,7 @@ def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver
     r, cost, g, h, finite = _linearise(core, y)
     cost_np, finite_np = np.asarray(cost), np.asarray(finite)
     histories = [[float(c)] for c in cost_np]
+    history_steps = [[0] for _ in range(n_starts)]
     steps, accepted, since = np.zeros(n_starts, int), np.zeros(n_starts, int), np.zeros(n_starts, int)
     verdicts: list = [None] * n_starts
     for i in range(n_starts):
@@ -149,6 +151,7 @@ def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver
                     accepted[i], since[i] = accepted[i] + 1, 0
                     hist = histories[i]
                     hist.append(float(cost_eval_np[i]))
+                    history_steps[i].append(k)
                     if terminate_np[i]:
                         verdicts[i] = (True, "converged (relative change below rtol/atol)", "successful")
                     # accepted steps that no longer lower the cost (parameters drifting along a flat valley, e.g.
@@ -188,7 +191,8 @@ def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver
     for i in range(n_starts):
         success, reason, code = verdicts[i] or (
             False, f"max_steps = {max_steps} reached before convergence", "max_steps_reached")
-        runs.append(_Run(y[i], int(steps[i]), int(accepted[i]), histories[i], success, reason, code))
+        runs.append(_Run(y[i], int(steps[i]), int(accepted[i]), histories[i], history_steps[i], success, reason,
+                         code))
     return runs
 
 
@@ -303,6 +307,7 @@ def solve(
         steps=sum(r.steps for _, r in runs),
         accepted=sum(r.accepted for _, r in runs),
         history=[c for _, r in runs for c in r.history],
+        history_steps=[k + sum(q.steps for _, q in runs[:j]) for j, (_, r) in enumerate(runs) for k in r.history_steps],
         seconds=seconds,
         levels=[{"smoothing": s, "steps": r.steps, "cost": r.history[-1], "reason": r.reason} for s, r in runs],
         gtol=gtol,

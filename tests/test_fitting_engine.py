@@ -219,6 +219,10 @@ def test_fit_recovers_and_reports(data):
         m = res.metrics[e.name]["displacement"]
         assert abs(m["rmse"] - 1e-3) < 2e-4  # the noise level
     assert res.cost < res.initial_cost and res.history[-1] == pytest.approx(res.cost, rel=1e-12)
+    # the step of each accepted cost: from 0 (the start), increasing, the last at most the steps taken
+    hs = res.history_steps
+    assert len(hs) == len(res.history) == res.accepted_steps + 1 and hs[0] == 0
+    assert all(b > a for a, b in zip(hs, hs[1:])) and hs[-1] <= res.steps
     text = res.report()
     assert "converged" in text and "dynamics.omega[0]" in text
     assert np.allclose(np.diag(res.correlation), 1.0)
