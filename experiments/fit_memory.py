@@ -7,7 +7,7 @@ zeta), capacitance, coupling)` fitted to `displacement` and `charge` (two channe
 20 thresholds, 2 stiffnesses, 2 time constants, $\omega$, $\zeta$, $C_p$, $T$ = 49; residuals
 $m = 8 \times 10^5 \times 2 = 1.6\cdot10^6$; the whole Jacobian would be $m \times p$ float64
 ($1.6\cdot10^6 \cdot 49 \cdot 8$ B = 627 MB), but the solver only forms $J^\top J$ and $J^\top r$, `jacobian_chunk`
-experiments at a time (default: as many as keep a chunk's Jacobian under 256 MiB, here 3).
+experiments at a time (default on CPU: one; `--chunks none,8` compares it with all eight at once).
 
 Each `jacobian_chunk` setting runs in a fresh Python process (`--child`), which builds the data, runs
 `fitting.solve(Problem(..., jacobian_chunk=c), max_steps=steps)` and prints its peak resident set size
@@ -111,7 +111,7 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--steps", type=int, default=2, help="LM steps (0: form the Jacobian once, no solve)")
     parser.add_argument("--samples", type=int, default=100_000)
     parser.add_argument("--experiments", type=int, default=8)
-    parser.add_argument("--chunks", default="none,1", help="comma-separated jacobian_chunk values ('none' = all)")
+    parser.add_argument("--chunks", default="none,8", help="comma-separated jacobian_chunk values ('none' = all)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--chunk", default="none", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
