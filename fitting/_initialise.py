@@ -18,6 +18,7 @@ import scipy.signal
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
+from piezojax._hysteresis.initialise import contiguous_runs
 
 # ----------------------------------------------------------------------------------------------------------------
 # linear building blocks (NumPy mirrors of the models' exact ZOH recursions)
@@ -85,13 +86,7 @@ def _clusters(weights: np.ndarray, grid: np.ndarray, n: int, rel: float, log: bo
     (geometric when `log`).
     Fewer than `n` runs: the missing points are spread log-uniformly over the grid's free range."""
     pos = np.log(grid) if log else grid
-    active = weights > rel * max(weights.max(initial=0.0), np.finfo(float).tiny)
-    runs: list[list[int]] = []
-    for i in np.flatnonzero(active):
-        if runs and runs[-1][-1] == i - 1:
-            runs[-1].append(i)
-        else:
-            runs.append([i])
+    runs = contiguous_runs(weights > rel * max(weights.max(initial=0.0), np.finfo(float).tiny))
 
     def centre(c):
         w = weights[c]

@@ -73,6 +73,17 @@ def pi_weights_least_squares(
     return PrandtlIshlinskii(jnp.asarray(coef[1:]), jnp.asarray(thresholds), w0=float(coef[0]))
 
 
+def contiguous_runs(active: np.ndarray) -> list[list[int]]:
+    """Indices of the `True` entries of the 1-D mask `active`, grouped into runs of consecutive indices."""
+    runs: list[list[int]] = []
+    for i in np.flatnonzero(active):
+        if runs and runs[-1][-1] == i - 1:
+            runs[-1].append(int(i))
+        else:
+            runs.append([int(i)])
+    return runs
+
+
 def pi_cold_start(
     signals: ArrayLike | Sequence[ArrayLike],
     outputs: ArrayLike | Sequence[ArrayLike],
@@ -115,13 +126,7 @@ def pi_cold_start(
     coef, _ = scipy.optimize.nnls(a, b)
     dense = coef[1:]
 
-    active = dense > min_weight_fraction * max(dense.max(), np.finfo(float).tiny)
-    clusters: list[list[int]] = []
-    for i in np.flatnonzero(active):
-        if clusters and clusters[-1][-1] == i - 1:
-            clusters[-1].append(i)
-        else:
-            clusters.append([i])
+    clusters = contiguous_runs(dense > min_weight_fraction * max(dense.max(), np.finfo(float).tiny))
 
     def centre(c):
         w = dense[c]
