@@ -90,12 +90,13 @@ def hysteresis_predictor() -> Predictor:
 
 def default_predictor(model) -> Predictor:
     """The built-in predictor for `model`'s type (after unwrapping reparametrisations); error for unknown types."""
-    m = pj.unwrap(model)
+    # the type only: traced, not computed (no compilation of the reparametrisations)
+    m = eqx.filter_eval_shape(pj.unwrap, model)
     if isinstance(m, pj.Actuator):
         return actuator_predictor()
     if isinstance(m, pj.AbstractObserver):
         # eval the structure once to see whether the observer estimates force
-        return observer_predictor(force=_observer_has_force(m))
+        return observer_predictor(force=_observer_has_force(model))
     if isinstance(m, pj.AbstractHysteresis):
         return hysteresis_predictor()
     raise PiezojaxValueError(
@@ -103,9 +104,7 @@ def default_predictor(model) -> Predictor:
     )
 
 
-def _observer_has_force(m) -> bool:
-    import jax
-
+def _observer_has_force(model) -> bool:
     v = jnp.zeros((4,), jnp.zeros(()).dtype)
-    est = jax.eval_shape(lambda: m(v, v, jnp.asarray(1.0, v.dtype)))
+    est = eqx.filter_eval_shape(lambda: pj.unwrap(model)(v, v, jnp.asarray(1.0, v.dtype)))
     return est.force is not None

@@ -213,19 +213,47 @@ class ProblemCore(eqx.Module):
         return jnp.concatenate(r_parts), g_sum, h_sum
 
 
+def _free_physical_tree(params, mask) -> dict[str, Array]:
+    """The free leaves of `params` (a model with reparametrisation wrappers) in physical units, by path."""
+    flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
+    masks = jtu.tree_leaves(mask, is_leaf=_is_reparam)
+    out = {}
+    for (path, leaf), m in zip(flat, masks):
+        if _is_reparam(leaf):
+            if jtu.tree_leaves(m.raw) == [True]:
+                out[_path_string(path)] = leaf.unwrap()
+        elif m is True:
+            out[_path_string(path)] = leaf
+    return out
+
+
+def _physical(core: ProblemCore, mask, u):
+    tree = _free_physical_tree(core.params(u), mask)
+    return jnp.concatenate([jnp.ravel(v) for v in tree.values()])
+
+
+@eqx.filter_jit
+def _physical_jacobian(core: ProblemCore, mask, u):
+    return jax.jacfwd(lambda v: _physical(core, mask, v))(u)
+
+
 # the forward-mode Jacobian of one chunk of experiments is kept under this many bytes when `chunk` is None
 _JACOBIAN_BUDGET = 256 * 2**20
 
 
 @eqx.filter_jit
-def _normal_equations_batch(core: ProblemCore, u):
-    """`core.normal_equations` for each row of `u` (shape `(starts, p)`), under `vmap`."""
-    return jax.vmap(core.normal_equations)(u)
+def _linearise(core: ProblemCore, u):
+    r"""`core.normal_equations` for each row of `u` (shape `(starts, p)`), under `vmap`: `(r, cost, g, H, finite)`
+    with the cost $\tfrac12\|r\|^2$ and whether $g$ and $H$ are finite, per start. One compiled function for the
+    solver, the problem's set-up and the results (the checks inside it, not as separate small computations)."""
+    r, g, h = jax.vmap(core.normal_equations)(u)
+    finite = jnp.all(jnp.isfinite(g), axis=1) & jnp.all(jnp.isfinite(h), axis=(1, 2))
+    return r, 0.5 * jnp.sum(r**2, axis=1), g, h, finite
 
 
 def _normal_equations(core: ProblemCore, u):
     # through the batched function with one start: the same compiled code as a single-start fit
-    r, g, h = _normal_equations_batch(core, u[None])
+    r, _, g, h, _ = _linearise(core, u[None])
     return r[0], g[0], h[0]
 
 
@@ -468,16 +496,7 @@ class Problem:
         return names
 
     def _free_physical_tree(self, params) -> dict[str, Array]:
-        flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
-        masks = jtu.tree_leaves(self.mask, is_leaf=_is_reparam)
-        out = {}
-        for (path, leaf), m in zip(flat, masks):
-            if _is_reparam(leaf):
-                if jtu.tree_leaves(m.raw) == [True]:
-                    out[_path_string(path)] = leaf.unwrap()
-            elif m is True:
-                out[_path_string(path)] = leaf
-        return out
+        return _free_physical_tree(params, self.mask)
 
     def u_of(self, model, name: str = "model") -> Float[Array, " p"]:
         """The scaled free parameters `u` of `model`, a model of the same structure as the problem's (same blocks,
@@ -496,8 +515,11 @@ class Problem:
 
     def physical(self, u: Float[Array, " p"]) -> Float[Array, " q"]:
         """The free parameters in physical (constrained) units, flattened in `parameter_names` order."""
-        tree = self._free_physical_tree(self.params(u))
-        return jnp.concatenate([jnp.ravel(v) for v in tree.values()])
+        return _physical(self.core, self.mask, u)
+
+    def physical_jacobian(self, u: Float[Array, " p"]) -> Float[Array, "q p"]:
+        """The Jacobian of `physical` at `u` (the reparametrisation's, in scaled parameters), compiled."""
+        return _physical_jacobian(self.core, self.mask, u)
 
     # ------------------------------------------------------------------ residuals
 
@@ -519,6 +541,24 @@ class Problem:
         """`(r, J^T r, J^T J)` at `u`, compiled, formed `jacobian_chunk` experiments at a time without keeping $J$
         (what each Levenberg–Marquardt linearisation computes)."""
         return _normal_equations(self.core, u)
+
+    def experiment_errors(self, r) -> list[dict[str, np.ndarray]]:
+        """Per experiment (dataset order), the prediction errors (predicted − measured, in channel units, unpadded
+        NumPy arrays) of each target channel, from a weighted residual vector `r` in the layout of `residuals`."""
+        r = np.asarray(r)
+        if r.shape != (sum(int(np.prod(m.shape)) for g in self.core.groups for m in g.masks.values()),):
+            raise PiezojaxValueError(f"`r` must be a residual vector of this problem, got shape {r.shape}")
+        weights = dict(self.weights)
+        out: list[dict[str, np.ndarray]] = [{} for _ in self.dataset]
+        k = 0
+        for g in self.core.groups:
+            for c in g.targets:
+                e, n = g.masks[c].shape
+                block = r[k : k + e * n].reshape(e, n) / weights[c]
+                k += e * n
+                for j, (i, length) in enumerate(zip(g.index, g.lengths)):
+                    out[i][c] = block[j, :length]
+        return out
 
     def experiment_predictions(self, u: Float[Array, " p"]) -> list[dict[str, np.ndarray]]:
         """Per experiment (dataset order), the predicted target channels at `u`, unpadded NumPy arrays."""

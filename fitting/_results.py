@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -16,7 +15,11 @@ from piezojax._checks import PiezojaxValueError
 
 def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float]:
     """RMSE (channel units), NRMSE and max |error| in % of the measured range."""
-    e = np.asarray(predicted, float) - np.asarray(measured, float)
+    return _metrics(np.asarray(predicted, float) - np.asarray(measured, float), measured)
+
+
+def _metrics(e: np.ndarray, measured: np.ndarray) -> dict[str, float]:
+    """`error_metrics` from the errors `e` = predicted − measured."""
     rng = float(np.ptp(measured))
     rmse = float(np.sqrt(np.mean(e**2)))
     scale = rng if rng > 0 else float("nan")
@@ -209,7 +212,7 @@ def summarise(
     keep = evals > top * 1e-14 * p
     inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
     cov_u = s2 * inv
-    d = np.asarray(jax.jacfwd(problem.physical)(u))
+    d = np.asarray(problem.physical_jacobian(u))
     cov = d @ cov_u @ d.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     if not np.all(keep):
@@ -233,10 +236,10 @@ def summarise(
         reason = (f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
                   f"{gtol:g}): the trust region shrank without a decrease (non-finite or non-smooth model?)")
 
-    preds = problem.experiment_predictions(u)
+    # the errors are the residuals unweighted: no further simulation
     metrics = {}
-    for exp, pred in zip(problem.dataset, preds):
-        metrics[exp.name] = {c: error_metrics(pred[c], exp.channels[c]) for c in pred}
+    for exp, errors in zip(problem.dataset, problem.experiment_errors(r)):
+        metrics[exp.name] = {c: _metrics(e, exp.channels[c]) for c, e in errors.items()}
     params = problem.params(u)
     return FitResult(
         model=pj.unwrap(params),

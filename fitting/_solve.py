@@ -17,7 +17,7 @@ import optimistix as optx
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._problem import Problem, _normal_equations_batch
+from ._problem import Problem, _linearise
 from ._results import FitResult, summarise
 
 
@@ -56,13 +56,6 @@ def _parts(linear_solver) -> tuple[optx.DampedNewtonDescent, optx.ClassicalTrust
     return optx.DampedNewtonDescent(linear_solver=linear_solver), optx.ClassicalTrustRegion()
 
 
-def _linearise(core, u):
-    # `u`: (starts, p); the compiled function the problem set-up and the results use too (one compilation)
-    r, g, h = _normal_equations_batch(core, u)
-    finite = jnp.all(jnp.isfinite(g), axis=1) & jnp.all(jnp.isfinite(h), axis=(1, 2))
-    return r, 0.5 * jnp.sum(r**2, axis=1), g, h, finite
-
-
 def _trial_one(descent, search, core, y, r, cost, g, h, step_size, search_state, rtol, atol, active):
     """One Levenberg–Marquardt trial: the damped Gauss–Newton step from the linearisation `(g, h)` at `y`, the cost
     at the trial point, and the trust-region verdict (optimistix's `DampedNewtonDescent` and `ClassicalTrustRegion`,
@@ -94,9 +87,10 @@ def _trial(descent, search, core, y, r, cost, g, h, step_size, search_state, rto
     return batched(descent, search, core, y, r, cost, g, h, step_size, search_state, rtol, atol, active)
 
 
+@jax.jit
 def _where(mask, new, old):
-    """Per start (leading axis): `new` where `mask`, else `old`, for arrays and pytrees of arrays."""
-    mask = jnp.asarray(mask)
+    """Per start (leading axis): `new` where `mask`, else `old`, for arrays and pytrees of arrays (one compiled
+    call for the whole pytree)."""
     return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
@@ -166,13 +160,12 @@ def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver
                     if since[i] >= max_rejections:
                         verdicts[i] = (False, f"no decrease of the cost in {since[i]} consecutive trial steps "
                                               "(stalled or diverging)", "stalled")
-            y, r, cost = _where(take, y_eval, y), _where(take, r_eval, r), _where(take, cost_eval, cost)
-            step_size = _where(active, new_step_size, step_size)
-            search_state = _where(active, new_search_state, search_state)
+            y, r, cost = _where(take, (y_eval, r_eval, cost_eval), (y, r, cost))
+            step_size, search_state = _where(active, (new_step_size, new_search_state), (step_size, search_state))
             active = np.array([v is None for v in verdicts])
             if relinearise.any():
                 _, _, g_new, h_new, finite = _linearise(core, y)
-                g, h = _where(relinearise, g_new, g), _where(relinearise, h_new, h)
+                g, h = _where(relinearise, (g_new, h_new), (g, h))
                 for i in np.flatnonzero(relinearise & ~np.asarray(finite)):
                     verdicts[i] = (False, "the Jacobian is not finite at an accepted point", "nonfinite")
                 active = np.array([v is None for v in verdicts])

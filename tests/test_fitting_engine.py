@@ -56,8 +56,8 @@ def test_jacobian_matches_central_differences(data):
     assert np.allclose(np.asarray(r), np.asarray(res(u)))
 
 
-def test_normal_equations_equal_the_full_jacobian_for_any_chunk():
-    # two channels, two groups (lengths in different power-of-2 brackets), chunks of 1, 2 and all experiments
+def _two_groups():
+    # two channels, two groups (lengths in different power-of-2 brackets, padding in the first)
     model = pj.constrain(_model(smoothing=0.1), lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
     rng = np.random.default_rng(3)
     exps = []
@@ -70,6 +70,12 @@ def test_normal_equations_equal_the_full_jacobian_for_any_chunk():
             charge=np.asarray(out.charge) * (1 + 1e-3 * rng.standard_normal(n))))
     ds = fitting.Dataset(exps)
     free = ["hysteresis.weights", "hysteresis.thresholds", "dynamics.omega", "capacitance"]
+    return model, ds, free
+
+
+def test_normal_equations_equal_the_full_jacobian_for_any_chunk():
+    # chunks of 1, 2 and all experiments
+    model, ds, free = _two_groups()
     ref = fitting.Problem(model, ds, free=free)
     assert len(ref.core.groups) == 2
     u = ref.u0 * 1.02
@@ -80,6 +86,20 @@ def test_normal_equations_equal_the_full_jacobian_for_any_chunk():
         np.testing.assert_allclose(rn, r, rtol=0, atol=1e-14)
         np.testing.assert_allclose(g, jt @ r, rtol=1e-10, atol=1e-12 * np.abs(jt @ r).max())
         np.testing.assert_allclose(h, jt @ jt.T, rtol=1e-10, atol=1e-12 * np.abs(h).max())
+
+    # the results' metrics come from the residuals unweighted: equal to the simulated predictions' errors
+    errors, preds = ref.experiment_errors(r), ref.experiment_predictions(u)
+    for exp, err, pred in zip(ds, errors, preds):
+        assert set(err) == set(pred) == {"displacement", "charge"}
+        for c in err:
+            assert err[c].shape == (exp.n,)
+            np.testing.assert_allclose(err[c], pred[c] - exp.channels[c], rtol=0,
+                                       atol=1e-12 * np.abs(exp.channels[c]).max())
+    with pytest.raises(PiezojaxValueError, match="`r`"):
+        ref.experiment_errors(r[:-1])
+    # the compiled reparametrisation Jacobian (standard errors) equals autodiff of `physical`
+    np.testing.assert_allclose(np.asarray(ref.physical_jacobian(u)), np.asarray(jax.jacfwd(ref.physical)(u)),
+                               rtol=1e-13, atol=0)
 
 
 def test_steps_are_those_of_optimistix_levenberg_marquardt(data):
