@@ -205,7 +205,12 @@ class ProblemCore(eqx.Module):
 
             xs = (d.t, d.v_in, d.channels, grp.targets, grp.masks)
             b, bs = len(grp.index), self.chunk_size(grp, p)
-            r, gs, hs = jax.vmap(one)(xs) if bs >= b else jax.lax.map(one, xs, batch_size=bs)
+            if bs >= b:
+                r, gs, hs = jax.vmap(one)(xs)
+            elif bs == 1:  # a plain scan: no unit batch axis (XLA:CPU copies arrays to move unit axes)
+                r, gs, hs = jax.lax.map(one, xs)
+            else:
+                r, gs, hs = jax.lax.map(one, xs, batch_size=bs)
             g_sum, h_sum = g_sum + jnp.sum(gs, axis=0), h_sum + jnp.sum(hs, axis=0)
             n = d.v_in.shape[1]
             # back to the layout of `residuals`: channel by channel, experiments stacked
@@ -246,7 +251,10 @@ def _linearise(core: ProblemCore, u):
     r"""`core.normal_equations` for each row of `u` (shape `(starts, p)`), under `vmap`: `(r, cost, g, H, finite)`
     with the cost $\tfrac12\|r\|^2$ and whether $g$ and $H$ are finite, per start. One compiled function for the
     solver, the problem's set-up and the results (the checks inside it, not as separate small computations)."""
-    r, g, h = jax.vmap(core.normal_equations)(u)
+    if u.shape[0] == 1:  # one start: no unit batch axis (XLA:CPU copies arrays to move unit axes)
+        r, g, h = (x[None] for x in core.normal_equations(u[0]))
+    else:
+        r, g, h = jax.vmap(core.normal_equations)(u)
     finite = jnp.all(jnp.isfinite(g), axis=1) & jnp.all(jnp.isfinite(h), axis=(1, 2))
     return r, 0.5 * jnp.sum(r**2, axis=1), g, h, finite
 
