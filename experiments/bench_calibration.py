@@ -1,6 +1,6 @@
 r"""Benchmark: the joint calibration of an actuator model with `fitting.fit` against scipy + numba.
 
-Run: `python -m experiments.bench_calibration [--quick] [--bounds-variant] [--max-steps N] [--progress]`
+Run: `python -m experiments.bench_calibration [--quick] [--method M] [--bounds-variant] [--max-steps N] [--progress]`
 
 The model is `pj.Actuator(PrandtlIshlinskii(15 plays), KelvinVoigtCreep(2 lags, k0=None),
 StableTransferFunction(1, omega, zeta))` (parallel structure): the displacement is
@@ -20,12 +20,17 @@ stiffnesses and time constants multiplied by $e^{0.3\,\xi}$, $w_0$ by 0.8, $\ome
 Fits, all on the same data, the same residuals $r = w_c(\hat\delta - \delta)$ with $w_c = 1/\mathrm{range}$
 (`weights="range"`) and the same cost $\tfrac12\|r\|^2$:
 
-1. `fitting.fit` (optimistix Levenberg–Marquardt, forward-mode Jacobian, `max_steps` 100; quick: 60). Constraints by
-   reparametrisation: weights, $w_0$, stiffnesses, time constants, $\omega$, $\zeta$ `Positive` (softplus),
-   thresholds `OrderedPositive`. The solver works in $u = \theta_{raw}/s$ with $s_j = |\theta_{raw,0,j}|/\|J_j\|$
-   (unit Jacobian columns at the start, i.e. scipy's `x_scale="jac"` frozen at the start; passed as `scales=`).
+1. `fitting.fit` (forward-mode Jacobian, `max_steps` 100; quick: 60) with `method="trust_region"` (default here):
+   scipy's TRF algorithm for unbounded problems (the same trust region, `x_scale="jac"` scaling, radius updates and
+   `ftol`/`xtol` tests as the baseline (2)), so that the two differ in how the model and its Jacobian are computed,
+   not in the algorithm; or `--method levenberg_marquardt` (the engine's default, optimistix's algorithm, which needs
+   about twice the Jacobians here). Constraints by reparametrisation: weights, $w_0$, stiffnesses, time constants,
+   $\omega$, $\zeta$ `Positive` (softplus), thresholds `OrderedPositive`. The solver works in
+   $u = \theta_{raw}/s$ with $s_j = |\theta_{raw,0,j}|/\|J_j\|$ (unit Jacobian columns at the start, i.e. scipy's
+   `x_scale="jac"` at the start; passed as `scales=`; the trust region rescales further as scipy does).
    The engine linearises only at accepted points, into $J^\top J$ and $J^\top r$, and solves the damped
-   $p \times p$ system by `lx.Cholesky()` (its default; `--linear-solver qr` for `lx.QR()` of that system).
+   $p \times p$ system (Levenberg–Marquardt: by `lx.Cholesky()`, its default, or `--linear-solver qr` for `lx.QR()`;
+   trust region: from the eigen-decomposition of the scaled $J^\top J$).
    Compilation is measured by a first fit with `max_steps=1` (compile + one step); the timed fit then reuses the
    cached compiled steps.
 2. scipy "same u": `scipy.optimize.least_squares(method="trf", jac="2-point", x_scale="jac")` over exactly the same
@@ -300,6 +305,7 @@ def run(
     scipy_max_nfev: int | None = None,
     linear_solver: str = "cholesky",
     run_scipy: bool = True,
+    method: str = "trust_region",
 ) -> dict:
     """Run the benchmark; print the table and return the measured numbers as a dict."""
     import jax
@@ -420,7 +426,7 @@ def run(
 
         solver = lx.QR() if linear_solver == "qr" else lx.Cholesky()
         r = fitting.fit(params0, ds, free=FREE, weights="range", scales=jnp.asarray(fit_scales), max_steps=steps,
-                        progress=progress, linear_solver=solver)
+                        progress=progress, linear_solver=solver, method=method)
         return r, time.perf_counter() - t0, time.process_time() - c0
 
     # Compilation: a first fit with max_steps=1 compiles the initialisation and the step (cached by structure and
@@ -436,8 +442,8 @@ def run(
         results.update(jax_cold_wall_s=wall + results["jax_compile_wall_s"],
                        jax_cold_cpu_s=cpu + results["jax_compile_cpu_s"])
     fr = jax_runs[-1][2]
-    results.update(jax_cost=fr.cost, jax_steps=fr.steps, jax_accepted=fr.accepted_steps, jax_success=fr.success,
-                   jax_reason=fr.reason)
+    results.update(method=method, jax_cost=fr.cost, jax_steps=fr.steps, jax_accepted=fr.accepted_steps,
+                   jax_success=fr.success, jax_reason=fr.reason)
     # per-operation timings (warm) for the profile
     u_fit = jnp.asarray(fr.u)
     results["jax_jacobian_s"] = _best(lambda: jax.block_until_ready(problem.residuals_and_jacobian(u_fit)), 3)
@@ -446,7 +452,7 @@ def run(
 
     # --- (2) scipy, same parametrisation ---------------------------------------------------------------------------
     if not run_scipy:
-        print(f"  engine ({linear_solver}): compiled {results['jax_warm_wall_s']:.2f} s wall, "
+        print(f"  engine ({method}, {linear_solver}): compiled {results['jax_warm_wall_s']:.2f} s wall, "
               f"{results['jax_warm_cpu_s']:.2f} s CPU, cost {fr.cost:.6e}, {fr.steps} steps, {fr.code}; "
               f"incl. compile {results['jax_cold_wall_s']:.2f} s wall, {results['jax_cold_cpu_s']:.2f} s CPU")
         return results
@@ -498,7 +504,7 @@ def run(
         print(f"  piezojax fitting.fit ({note})".ljust(39) + f"{results[f'jax_{label}_wall_s']:8.2f} "
               f"{results[f'jax_{label}_cpu_s']:8.2f}  {r.cost:.6e} {r.accepted_steps + 1:7d} "
               f"{r.steps + 1:7d} {'-':>9s}  "
-              f"LM loop {r.seconds:.2f} s, {r.accepted_steps} accepted, {r.code}")
+              f"{method} {r.seconds:.2f} s, {r.accepted_steps} accepted, {r.code}")
     if "jax_eq_wall_s" in results:
         print("  piezojax, stopped at scipy's cost".ljust(39) + f"{results['jax_eq_wall_s']:8.2f} "
               f"{results['jax_eq_cpu_s']:8.2f}  {results['jax_eq_cost']:.6e} {results['jax_eq_jacobians']:7d} "
@@ -528,7 +534,7 @@ def run(
     _line("one residual evaluation (jit)", f"{results['jax_residuals_s'] * 1e3:.1f} ms")
     _line("one residuals + Jacobian (engine, jit)", f"{results['jax_jacobian_s'] * 1e3:.1f} ms")
     _line("one linearisation J^T J, J^T r (engine, jit)", f"{results['normal_equations_s'] * 1e3:.1f} ms")
-    _line("LM wall per step (warm solve / steps)", f"{fr.seconds / max(fr.steps, 1) * 1e3:.1f} ms")
+    _line("engine wall per step (warm solve / steps)", f"{fr.seconds / max(fr.steps, 1) * 1e3:.1f} ms")
     if warm_run:
         _line("compile: warm-up fit with max_steps=1 (compile + 1 step), wall",
               f"{results['jax_compile_wall_s']:.1f} s")
@@ -561,11 +567,13 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="4 experiments x 2500 samples (for tests)")
     parser.add_argument("--bounds-variant", action="store_true", help="also fit scipy on bounded physical parameters")
-    parser.add_argument("--max-steps", type=int, default=None, help="engine LM steps (default 100, quick 60)")
+    parser.add_argument("--max-steps", type=int, default=None, help="engine steps (default 100, quick 60)")
     parser.add_argument("--progress", action="store_true", help="print the engine's progress on stderr")
     parser.add_argument("--linear-solver", choices=("qr", "cholesky"), default="cholesky",
                         help="the engine's LM linear solve: lx.Normal(lx.Cholesky()) (default) or lx.QR()")
     parser.add_argument("--no-scipy", action="store_true", help="run only the engine")
+    parser.add_argument("--method", choices=("trust_region", "levenberg_marquardt"), default="trust_region",
+                        help="the engine's `fitting.solve(method=...)` (default trust_region: scipy's algorithm)")
     args = parser.parse_args(argv)
     import piezojax as pj
 
@@ -574,7 +582,7 @@ def main(argv=None) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     return run(quick=args.quick, bounds_variant=args.bounds_variant, max_steps=args.max_steps, progress=args.progress,
-               linear_solver=args.linear_solver, run_scipy=not args.no_scipy)
+               linear_solver=args.linear_solver, run_scipy=not args.no_scipy, method=args.method)
 
 
 if __name__ == "__main__":

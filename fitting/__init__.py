@@ -3,9 +3,9 @@
 - Data: `Experiment`, `Dataset`, `load_experiment`, `save_experiment` (CSV, NPZ, HDF5, MATLAB .mat).
 - Problem: `Problem` (model, data, free parameters, channel weights, weighted residuals), `Predictor` and the
   built-in predictors.
-- Solver: `fit` / `solve` (optimistix's Levenberg–Marquardt in normal-equation form: $J^\top J$ and $J^\top r$ by
-  forward mode at each accepted point, a chunk of experiments at a time), multi-start under `vmap`, smoothing
-  continuation, failure reasons instead of NaN.
+- Solver: `fit` / `solve` (optimistix's Levenberg–Marquardt, or `method="trust_region"`: scipy's TRF algorithm, in
+  normal-equation form: $J^\top J$ and $J^\top r$ by forward mode at each accepted point, a chunk of experiments at
+  a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN.
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 """
 

@@ -57,7 +57,7 @@ _OBSERVER_REQUIRED = (
     "stiffness",
 )
 _OBSERVER_KEYS = _OBSERVER_REQUIRED + ("bias_current", "capacitance_p", "filter_cutoff")
-_FIT_KEYS = ("free", "weights", "smoothing", "max_steps", "targets")
+_FIT_KEYS = ("free", "weights", "smoothing", "max_steps", "targets", "method")
 _WEIGHT_MODES = ("range", "noise")
 
 
@@ -197,8 +197,8 @@ class ModelConfig:
     - `hysteresis`, `creep`: kinds (`"none"` for no block) with their validated options in `hysteresis_options` /
       `creep_options`; `dynamics_order`, `dynamics_options`; `charge` (the `[charge]` options, or `None`);
       `observer` (the `[observer]` options, or `None` for a `pj.Actuator`).
-    - `free`, `weights`, `smoothing`, `max_steps`, `targets`: the `[fit]` options (`free=None`: the default set of
-      `default_free`).
+    - `free`, `weights`, `smoothing`, `max_steps`, `targets`, `method`: the `[fit]` options (`free=None`: the default
+      set of `default_free`; `method`: `fitting.solve`'s, default `"levenberg_marquardt"`).
     """
 
     text: str
@@ -216,6 +216,7 @@ class ModelConfig:
     smoothing: tuple[float, ...] | None
     max_steps: int
     targets: tuple[str, ...] | None
+    method: str = "levenberg_marquardt"
 
     # -------------------------------------------------------------------------------------------- structure
 
@@ -894,6 +895,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
             raise ft.error("continuation needs a hysteresis block with smoothing", "smoothing")
         smoothing = tuple(float(s) for s in smoothing)
     max_steps = ft.integer("max_steps", 200, minimum=1)
+    method = ft.string("method", ("levenberg_marquardt", "trust_region"), "levenberg_marquardt")
     targets = ft.data.get("targets")
     if targets is not None:
         outputs = ("displacement", "force") if observer is not None else (
@@ -912,7 +914,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     cfg = ModelConfig(
         text=text, source=source, hysteresis=h_kind, hysteresis_options=ho, creep=c_kind, creep_options=co,
         dynamics_order=order, dynamics_options=do, charge=charge, observer=observer, free=free, weights=weights,
-        smoothing=smoothing, max_steps=max_steps, targets=targets,
+        smoothing=smoothing, max_steps=max_steps, targets=targets, method=method,
     )
     if ho.get("smoothing", 0.0) != 0 and h_kind == "bouc_wen" and cfg._bouc_wen_method() != "rk4":
         raise ht.error("smoothing needs method = 'rk4'", "smoothing")

@@ -79,12 +79,127 @@ def _trial_one(descent, search, core, y, r, cost, g, h, step_size, search_state,
             result == optx.RESULTS.successful)
 
 
+def _over_starts(fn, in_axes, n_starts):
+    """`fn` mapped over the starts (the arguments with `in_axes` 0): `eqx.filter_vmap`, or for a single start a plain
+    call with the axis added back (a unit batch axis makes XLA:CPU copy arrays to move it: measured ~20 % of a
+    linearisation)."""
+    if n_starts > 1:
+        return eqx.filter_vmap(fn, in_axes=in_axes)
+
+    def call(*args):
+        args = [jtu.tree_map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, in_axes)]
+        return jtu.tree_map(lambda x: x[None], fn(*args))
+
+    return call
+
+
 @eqx.filter_jit
 def _trial(descent, search, core, y, r, cost, g, h, step_size, search_state, rtol, atol, active):
     """`_trial_one` for every start (leading axis of `y`, `r`, `cost`, `g`, `h`, `step_size`, `search_state`,
     `active`)."""
-    batched = eqx.filter_vmap(_trial_one, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, None, None, 0))
+    batched = _over_starts(_trial_one, (None, None, None, 0, 0, 0, 0, 0, 0, 0, None, None, 0), y.shape[0])
     return batched(descent, search, core, y, r, cost, g, h, step_size, search_state, rtol, atol, active)
+
+
+def _column_norms(h):
+    r"""$\|J_{:,j}\|$ from $H = J^\top J$ (leading axes batched); zero columns count as 1 (scipy's `x_scale="jac"`)."""
+    norms = jnp.sqrt(jnp.clip(jnp.diagonal(h, axis1=-2, axis2=-1), 0.0, None))
+    return jnp.where(norms > 0, norms, 1.0)
+
+
+def _tr_subproblem(lam, vecs, suf, delta, alpha, m, max_iter=10, rtol=0.01):
+    r"""scipy's `solve_lsq_trust_region` from the eigen-decomposition of $\hat H = \hat J^	op \hat J$ instead of the
+    SVD of $\hat J$ ($s_i^2 = $ `lam` descending, $V$ = `vecs`, $s \odot U^	op r = V^	op \hat g$ = `suf`): the
+    Gauss–Newton step if it is inside the radius `delta`, else the step $-(\hat H + lpha I)^{-1}\hat g$ with
+    $\|p\| = \Delta$ (Moré's Newton iteration on $lpha$ from `alpha`, relative tolerance 1 %). **Returns:**
+    `(p, alpha)`."""
+    s = jnp.sqrt(lam)
+    full_rank = s[-1] > jnp.finfo(lam.dtype).eps * m * s[0]
+    lam_safe = jnp.where(lam > 0, lam, 1.0)
+    p_gn = -vecs @ (suf / lam_safe)
+    take_gn = full_rank & (jnp.linalg.norm(p_gn) <= delta)
+
+    def phi_and_derivative(a):
+        denom = lam + a
+        p_norm = jnp.linalg.norm(suf / denom)
+        return p_norm - delta, -jnp.sum(suf**2 / denom**3) / p_norm
+
+    upper = jnp.linalg.norm(suf) / delta
+    phi0, dphi0 = phi_and_derivative(jnp.where(full_rank, 0.0, 1.0))
+    lower = jnp.where(full_rank, -phi0 / dphi0, 0.0)
+    alpha = jnp.where(~full_rank & (alpha == 0), jnp.maximum(0.001 * upper, jnp.sqrt(lower * upper)), alpha)
+
+    def body(_, carry):
+        a, lo, hi, done = carry
+        a_reset = jnp.where((a < lo) | (a > hi), jnp.maximum(0.001 * hi, jnp.sqrt(lo * hi)), a)
+        phi, dphi = phi_and_derivative(a_reset)
+        hi_new = jnp.where(phi < 0, a_reset, hi)
+        ratio = phi / dphi
+        lo_new = jnp.maximum(lo, a_reset - ratio)
+        a_new = a_reset - (phi + delta) * ratio / delta
+        keep = lambda new, old: jnp.where(done, old, new)  # noqa: E731
+        return keep(a_new, a), keep(lo_new, lo), keep(hi_new, hi), done | (jnp.abs(phi) < rtol * delta)
+
+    alpha, *_ = jax.lax.fori_loop(0, max_iter, body, (alpha, lower, upper, jnp.array(False)))
+    p = -vecs @ (suf / (lam + alpha))
+    p = p * (delta / jnp.linalg.norm(p))
+    return jnp.where(take_gn, p_gn, p), jnp.where(take_gn, 0.0, alpha)
+
+
+def _tr_trial_one(core, y, r, cost, g, h, state, active, ftol, xtol):
+    """One trial of scipy's `least_squares(method="trf", x_scale="jac")` for an unbounded problem, in normal-equation
+    form: the trust-region step in the variables scaled by the running maximum of the Jacobian's column norms, the
+    cost there, the radius update and scipy's `ftol`/`xtol` tests."""
+    scale_inv, delta, alpha = state
+    d = 1.0 / scale_inv
+    hh = h * d[:, None] * d[None, :]
+    gh = g * d
+    lam, vecs = jnp.linalg.eigh(hh)
+    lam, vecs = jnp.clip(lam[::-1], 0.0, None), vecs[:, ::-1]
+    step_h, alpha = _tr_subproblem(lam, vecs, vecs.T @ gh, delta, alpha, r.shape[0])
+    step_h = jnp.where(active, step_h, 0.0)
+    step = d * step_h
+    y_eval = y + step
+    r_eval = core.residuals(y_eval)
+    cost_eval = 0.5 * jnp.sum(r_eval**2)
+    finite = jnp.isfinite(cost_eval)
+    predicted = -(0.5 * step_h @ hh @ step_h + gh @ step_h)
+    actual = cost - cost_eval
+    ratio = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0),
+                      jnp.where((predicted == 0) & (actual == 0), 1.0, 0.0))
+    step_h_norm = jnp.linalg.norm(step_h)
+    new_delta = jnp.where(ratio < 0.25, 0.25 * step_h_norm,
+                          jnp.where((ratio > 0.75) & (step_h_norm > 0.95 * delta), 2.0 * delta, delta))
+    new_delta = jnp.where(finite, new_delta, 0.25 * step_h_norm)
+    new_delta = jnp.where(active, new_delta, delta)
+    alpha = alpha * delta / new_delta
+    ftol_ok = (actual < ftol * cost) & (ratio > 0.25)
+    xtol_ok = jnp.linalg.norm(step) < xtol * (xtol + jnp.linalg.norm(y))
+    accept = finite & (actual > 0)
+    return (y_eval, r_eval, cost_eval, accept, (scale_inv, new_delta, alpha), finite & (ftol_ok | xtol_ok),
+            jnp.all(jnp.isfinite(step)))
+
+
+@eqx.filter_jit
+def _tr_trial(core, y, r, cost, g, h, state, active, ftol, xtol):
+    """`_tr_trial_one` for every start (leading axis of everything but `core`, `ftol`, `xtol`)."""
+    batched = _over_starts(_tr_trial_one, (None, 0, 0, 0, 0, 0, 0, 0, None, None), y.shape[0])
+    return batched(core, y, r, cost, g, h, state, active, ftol, xtol)
+
+
+@jax.jit
+def _tr_init(u, h):
+    scale_inv = _column_norms(h)
+    delta = jnp.linalg.norm(u * scale_inv, axis=1)
+    return scale_inv, jnp.where(delta > 0, delta, 1.0), jnp.zeros_like(delta)
+
+
+@jax.jit
+def _tr_rescale(state, h, mask):
+    # scipy's running maximum of the column norms, at each new linearisation
+    scale_inv, delta, alpha = state
+    new = jnp.maximum(scale_inv, _column_norms(h))
+    return jnp.where(mask[:, None], new, scale_inv), delta, alpha
 
 
 @jax.jit
@@ -95,17 +210,18 @@ def _where(mask, new, old):
 
 
 def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
-                         label="", max_rejections=40, window=5) -> list[_Run]:
+                         label="", max_rejections=40, window=5, method="levenberg_marquardt") -> list[_Run]:
     r"""Levenberg–Marquardt in normal-equation form from every start in `u0` (shape `(starts, p)`) at once, stepped
     from Python.
 
-    The algorithm is `optx.LevenbergMarquardt`'s — damped Newton descent $(H + \lambda I)\delta = -g$ with the
-    Gauss–Newton $H = J^\top J$, $g = J^\top r$, and the classical trust-region update of $\lambda$ — built from its
-    optimistix parts, with two differences that matter for long records: the model is linearised only at accepted
-    points (a rejected trial costs one simulation, not a Jacobian), and the linearisation is $(g, H)$, accumulated
-    over chunks of experiments (`ProblemCore.normal_equations`), never the $m \times p$ Jacobian. The starts run
-    in lockstep under `vmap` (a finished start is frozen); each has its own damping, history and verdict."""
-    descent, search = _parts(linear_solver)
+    `method="levenberg_marquardt"`: `optx.LevenbergMarquardt`'s algorithm — damped Newton descent
+    $(H + \lambda I)\delta = -g$ with the Gauss–Newton $H = J^\top J$, $g = J^\top r$, and the classical
+    trust-region update of $\lambda$ — built from its optimistix parts, with two differences that matter for long
+    records: the model is linearised only at accepted points (a rejected trial costs one simulation, not a Jacobian),
+    and the linearisation is $(g, H)$, accumulated over chunks of experiments (`ProblemCore.normal_equations`), never
+    the $m \times p$ Jacobian. `method="trust_region"`: scipy's `least_squares(method="trf", x_scale="jac")` for
+    an unbounded problem (`_tr_trial_one`), from the same linearisations. The starts run in lockstep under `vmap` (a
+    finished start is frozen); each has its own damping, history and verdict."""
     n_starts = u0.shape[0]
     y = u0
     r, cost, g, h, finite = _linearise(core, y)
@@ -121,51 +237,86 @@ def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver
         elif not finite_np[i]:
             verdicts[i] = (False, "the Jacobian is not finite at the initial parameters", "nonfinite_initial")
     active = np.array([v is None for v in verdicts])
-    state = search.init(u0[0], None)
-    search_state = jtu.tree_map(lambda x: jnp.broadcast_to(x, (n_starts,) + jnp.shape(x)), state)
-    step_size = jnp.ones((n_starts,), u0.dtype)
     rtol, atol = jnp.asarray(rtol, u0.dtype), jnp.asarray(atol, u0.dtype)
+    if method == "trust_region":
+        state = _tr_init(y, h)
+        converged = "converged (scipy's ftol/xtol test: relative cost decrease below ftol or step below rtol)"
+        ftol_arr = jnp.asarray(ftol, u0.dtype)
+
+        def trial(y, r, cost, g, h, state, active):
+            return _tr_trial(core, y, r, cost, g, h, state, active, ftol_arr, rtol)
+
+        def shrink(state):  # as after a non-finite trial: a quarter of the radius
+            scale_inv, delta, alpha = state
+            return scale_inv, 0.25 * delta, 4.0 * alpha
+    else:
+        descent, search = _parts(linear_solver)
+        state = (jnp.ones((n_starts,), u0.dtype),
+                 jtu.tree_map(lambda x: jnp.broadcast_to(x, (n_starts,) + jnp.shape(x)), search.init(u0[0], None)))
+        converged = "converged (relative change below rtol/atol)"
+
+        def trial(y, r, cost, g, h, state, active):
+            out = _trial(descent, search, core, y, r, cost, g, h, *state, rtol, atol, active)
+            y_eval, r_eval, cost_eval, accept, step_size, search_state, terminate, ok = out
+            return y_eval, r_eval, cost_eval, accept, (step_size, search_state), terminate, ok
+
+        def shrink(state):  # as after a rejected trial: `ClassicalTrustRegion`'s low_constant (the state is step sizes)
+            return jtu.tree_map(lambda x: search.low_constant * x, state)
+
     t0 = time.perf_counter()
+    model_error = ""
     try:
         for k in range(1, max_steps + 1):
             if not active.any():
                 break
-            out = _trial(descent, search, core, y, r, cost, g, h, step_size, search_state, rtol, atol,
-                         jnp.asarray(active))
-            y_eval, r_eval, cost_eval, accept, new_step_size, new_search_state, terminate, ok = out
-            accept_np, terminate_np, ok_np = np.asarray(accept), np.asarray(terminate), np.asarray(ok)
-            cost_eval_np = np.asarray(cost_eval)
+            try:
+                y_eval, r_eval, cost_eval, accept, new_state, terminate, ok = trial(y, r, cost, g, h, state,
+                                                                                    jnp.asarray(active))
+                accept_np, terminate_np, ok_np = np.asarray(accept), np.asarray(terminate), np.asarray(ok)
+                cost_eval_np = np.asarray(cost_eval)
+            except eqx.EquinoxRuntimeError as e:
+                # the model refused the trial parameters (a runtime check, e.g. a stiffness that underflowed to 0):
+                # a failed trial like a non-finite one, the step shrunk (every start, as they were evaluated at once)
+                model_error = str(e).strip().splitlines()[0]
+                y_eval, r_eval, cost_eval, new_state = y, r, cost, shrink(state)
+                accept_np, terminate_np = np.zeros(n_starts, bool), np.zeros(n_starts, bool)
+                ok_np, cost_eval_np = np.ones(n_starts, bool), np.asarray(cost)
             take = active & accept_np & ok_np
             relinearise = np.zeros(n_starts, bool)
             for i in np.flatnonzero(active):
                 steps[i] = k
                 if not ok_np[i]:
                     verdicts[i] = (False, "the linear solve of a damped step failed", "linear_solve_failed")
-                elif take[i]:
+                    continue
+                if take[i]:
                     accepted[i], since[i] = accepted[i] + 1, 0
                     hist = histories[i]
                     hist.append(float(cost_eval_np[i]))
                     history_steps[i].append(k)
-                    if terminate_np[i]:
-                        verdicts[i] = (True, "converged (relative change below rtol/atol)", "successful")
+                else:
+                    since[i] += 1
+                if terminate_np[i]:
+                    verdicts[i] = (True, converged, "successful")
+                elif take[i]:
                     # accepted steps that no longer lower the cost (parameters drifting along a flat valley, e.g.
                     # the threshold of a play whose weight is zero) end the fit too
-                    elif len(hist) > window and hist[-window - 1] - hist[-1] <= ftol * window * hist[-1]:
+                    if len(hist) > window and hist[-window - 1] - hist[-1] <= ftol * window * hist[-1]:
                         verdicts[i] = (True, f"converged (mean relative cost decrease per accepted step over the "
                                              f"last {window} below ftol = {ftol:g})", "successful")
                     else:
                         relinearise[i] = True
-                else:
-                    since[i] += 1
-                    if since[i] >= max_rejections:
-                        verdicts[i] = (False, f"no decrease of the cost in {since[i]} consecutive trial steps "
-                                              "(stalled or diverging)", "stalled")
+                elif since[i] >= max_rejections:
+                    why = f"; last model error: {model_error}" if model_error else ""
+                    verdicts[i] = (False, f"no decrease of the cost in {since[i]} consecutive trial steps "
+                                          f"(stalled or diverging{why})", "stalled")
             y, r, cost = _where(take, (y_eval, r_eval, cost_eval), (y, r, cost))
-            step_size, search_state = _where(active, (new_step_size, new_search_state), (step_size, search_state))
+            state = _where(active, new_state, state)
             active = np.array([v is None for v in verdicts])
             if relinearise.any():
                 _, _, g_new, h_new, finite = _linearise(core, y)
                 g, h = _where(relinearise, (g_new, h_new), (g, h))
+                if method == "trust_region":
+                    state = _tr_rescale(state, h, relinearise)
                 for i in np.flatnonzero(relinearise & ~np.asarray(finite)):
                     verdicts[i] = (False, "the Jacobian is not finite at an accepted point", "nonfinite")
                 active = np.array([v is None for v in verdicts])
@@ -216,6 +367,7 @@ def solve(
     progress: bool = True,
     throw: bool = False,
     gtol: float = 1e-2,
+    method: str = "levenberg_marquardt",
 ) -> FitResult:
     r"""Solve a `Problem` by Levenberg–Marquardt (`optimistix.LevenbergMarquardt`) from its initial model.
 
@@ -241,6 +393,15 @@ def solve(
       on the parameters and the residuals; `ftol`: the fit also stops (converged) when the cost decreased by less than
       `ftol` relative per accepted step, on average over the last five (scipy's `ftol` test, averaged).
     - `linear_solver`: the lineax solver of the damped $p \times p$ system (default `lx.Cholesky()`).
+    - `method`: `"levenberg_marquardt"` (default): optimistix's algorithm as above. `"trust_region"`: the
+      algorithm of `scipy.optimize.least_squares(method="trf", x_scale="jac")` for an unbounded problem, from the
+      same linearisations: a trust region of radius $\Delta$ in the parameters scaled by the running maximum of the
+      Jacobian's column norms, the step $-(\hat H + \alpha I)^{-1}\hat g$ with $\alpha$ such that it reaches the
+      radius (from the eigen-decomposition of the scaled $p \times p$ $\hat H$, Moré's iteration), the radius
+      shrunk to a quarter of the step below a ratio (actual / predicted decrease) of 0.25 and doubled above 0.75,
+      any decrease accepted, and scipy's tests (relative cost decrease below `ftol` with a ratio above 0.25, or step
+      below `rtol` relative). `linear_solver` is not used. On the calibration benchmark it needed about half the
+      Jacobians of `"levenberg_marquardt"` (`experiments/bench_calibration.py`); both are local methods.
     - `progress`: print step, cost, accepted steps and elapsed time on stderr.
     - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` (not a stationary point: e.g. the trust
       region shrank to nothing around non-finite predictions) is reported as failed (`"not_stationary"`).
@@ -256,6 +417,8 @@ def solve(
         linear_solver = lx.Cholesky()
     if max_steps < 1:
         raise PiezojaxValueError(f"`max_steps` must be >= 1, got {max_steps}")
+    if method not in ("levenberg_marquardt", "trust_region"):
+        raise PiezojaxValueError(f'`method` must be "levenberg_marquardt" or "trust_region", got {method!r}')
     levels = [None] if smoothing is None else list(smoothing)
     if not levels:
         raise PiezojaxValueError("`smoothing` must list at least one level (or be None)")
@@ -278,7 +441,7 @@ def solve(
         label = f"[smoothing {s:g}] " if s is not None else ""
         level = problem.with_frozen(frozen)
         runs = _levenberg_marquardt(u, level.core, rtol=rtol, atol=atol, ftol=ftol, max_steps=max_steps,
-                                    linear_solver=linear_solver, progress=progress, label=label)
+                                    linear_solver=linear_solver, progress=progress, label=label, method=method)
         for i, run in enumerate(runs):
             per_start[i].append((s, run))
         u = jnp.stack([run.u for run in runs])

@@ -32,6 +32,7 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
                 weights = "range" | "noise" | {displacement = 1e6, force = 1e3}
                 smoothing = [0.05, 0.0]   (continuation: relaxed, then exact hysteresis)
                 max_steps = 200;  targets = ["displacement", ...] (default: predicted channels in the data)
+                method = "levenberg_marquardt" | "trust_region"   (scipy's TRF algorithm; see fitting.solve)
 
 Parameter values not given in CONFIG start from the data (`fit`), see the README ("Command line").
 Data files: .csv (header naming t, v_in and any of v_out, displacement, force, charge, current), .npz, .h5/.hdf5,
@@ -224,10 +225,11 @@ def _cmd_fit(args) -> int:
     params = config.build(dataset)
     free = config.fit_free(targets)
     max_steps = args.max_steps if args.max_steps is not None else config.max_steps
-    _info(f"Levenberg–Marquardt on {', '.join(free)} (first step compiles)", quiet)
+    what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
+    _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
     result = fitting.fit(
         params, dataset, predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
-        smoothing=config.smoothing, max_steps=max_steps, progress=not quiet,
+        smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method,
     )
     extra = {
         "cli": {

@@ -369,6 +369,7 @@ def test_ctrl_c_leaves_no_folder_or_a_complete_one(work):
     ('[dynamics]\norder = 2\n[fit]\ntargets = ["force"]\n', "the model does not predict 'force'"),
     ('[dynamics]\norder = 2\n[fit]\nsmoothing = [0.1]\n', "needs a hysteresis block"),
     ('[fit]\nmax_steps = 10\n', "no model blocks"),
+    ('[dynamics]\norder = 2\n[fit]\nmethod = "bfgs"\n', "[fit] method: unknown value 'bfgs'"),
     ('hysteresis = 3\n', "hysteresis must be a table"),
 ])
 def test_config_errors_name_table_key_and_allowed_values(text, expected):
@@ -389,3 +390,5 @@ def test_config_defaults_and_free_sets():
     bw = parse_config('[hysteresis]\nkind = "bouc_wen"\n[fit]\nsmoothing = [0.1, 0.0]\n', "m.toml")
     assert bw._bouc_wen_method() == "rk4" and "hysteresis.n" in bw.default_free()
     assert "dynamics.gain" in parse_config('[creep]\nkind = "logarithmic"\n', "m.toml").default_free()
+    assert cfg.method == "levenberg_marquardt"
+    assert parse_config('[dynamics]\norder = 2\n[fit]\nmethod = "trust_region"\n', "m.toml").method == "trust_region"

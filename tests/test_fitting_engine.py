@@ -33,7 +33,8 @@ def _experiments(model, lengths=(600, 600, 520), noise=1e-3, seed=0):
         t = np.arange(n) * DT
         v = (30 + 15 * i) * np.sin(2 * np.pi * (2 + i) * t) * np.minimum(1, t / 0.1)
         y = np.asarray(model.simulate(v, DT).displacement)
-        out.append(fitting.Experiment.from_arrays(t=t, v_in=v, name=f"e{i}", displacement=y + noise * rng.standard_normal(n)))
+        out.append(fitting.Experiment.from_arrays(t=t, v_in=v, name=f"e{i}",
+                                                  displacement=y + noise * rng.standard_normal(n)))
     return fitting.Dataset(out)
 
 
@@ -131,7 +132,8 @@ def test_steps_are_those_of_optimistix_levenberg_marquardt(data):
         assert ours.accepted_steps == int(ref.state.num_accepted_steps) - 1
 
 
-def test_multistart_runs_each_start_as_alone_and_reports_the_best(data):
+@pytest.mark.parametrize("method", ["levenberg_marquardt", "trust_region"])
+def test_multistart_runs_each_start_as_alone_and_reports_the_best(data, method):
     def guarded(m, d):  # predictions are NaN for w0 > 5: a start there fails at once
         y = m.simulate(d.v_in, d.dt).displacement
         return {"displacement": jnp.where(m.hysteresis.w0 > 5.0, jnp.nan, 1.0) * y}
@@ -146,23 +148,82 @@ def test_multistart_runs_each_start_as_alone_and_reports_the_best(data):
                     (jnp.asarray(0.7), jnp.array([0.1, 0.4]))),
     ]
     prob = fitting.Problem(model, data, predictor=pred, free=free)
-    res = fitting.solve(prob, starts=starts, progress=False)
+    res = fitting.solve(prob, starts=starts, progress=False, method=method)
     assert [st["code"] for st in res.starts][1] == "nonfinite_initial"
     ok = [i for i, st in enumerate(res.starts) if st["success"]]
     assert ok == [0, 2]
     best = min(ok, key=lambda i: res.starts[i]["cost"])
     assert res.starts[best]["best"] and res.success and res.cost == pytest.approx(res.starts[best]["cost"], rel=1e-12)
     assert "multi-start: 3 starts, 2 converged" in res.report()
-    # each start in the batch takes the same steps as a fit from it alone
-    for i in ok:
+    # the starts do not interact: without the failing start, each takes the same steps to the same cost; alone (a
+    # single start runs unbatched, so rounding differs and the last steps near machine precision may differ), each
+    # reaches the same cost
+    pair = fitting.solve(prob, starts=[starts[i] for i in ok], progress=False, method=method)
+    for j, i in enumerate(ok):
+        assert pair.starts[j]["steps"] == res.starts[i]["steps"]
+        assert pair.starts[j]["cost"] == pytest.approx(res.starts[i]["cost"], rel=1e-12)
         alone = fitting.solve(fitting.Problem(starts[i], data, predictor=pred, free=free, scales=prob.scales),
-                              progress=False)
-        assert alone.steps == res.starts[i]["steps"]
-        assert alone.cost == pytest.approx(res.starts[i]["cost"], rel=1e-9)
+                              progress=False, method=method)
+        assert alone.success and alone.cost == pytest.approx(res.starts[i]["cost"], rel=1e-9)
     with pytest.raises(PiezojaxValueError, match=r"`starts\[0\]` does not have the structure"):
         fitting.solve(prob, starts=[pj.constrain(model, lambda m: m.hysteresis.w0, pj.Positive)], progress=False)
     with pytest.raises(PiezojaxValueError, match="`starts` must list at least one"):
         fitting.solve(prob, starts=[], progress=False)
+
+
+def test_trust_region_is_scipys_trf(data):
+    # method="trust_region" is scipy's least_squares(method="trf", x_scale="jac") for unbounded problems: with the
+    # same exact Jacobian, the same iterates (after 3 trials, and at convergence) and the same counts
+    import scipy.optimize
+
+    model = pj.constrain(_model(smoothing=0.1), lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    start = eqx.tree_at(lambda m: (m.dynamics.omega, m.hysteresis.w0), model,
+                        (model.dynamics.omega * 1.4, jnp.asarray(0.6)))
+    prob = fitting.Problem(start, data, free=["hysteresis.w0", "hysteresis.weights", "hysteresis.thresholds",
+                                              "dynamics.omega", "dynamics.zeta"])
+    res_fn = jax.jit(prob.residuals)
+
+    def scipy_fit(max_nfev):
+        return scipy.optimize.least_squares(
+            lambda u: np.asarray(res_fn(jnp.asarray(u))), np.asarray(prob.u0),
+            jac=lambda u: np.asarray(prob.residuals_and_jacobian(jnp.asarray(u))[1]).T,
+            method="trf", x_scale="jac", ftol=1e-8, xtol=1e-8, gtol=None, max_nfev=max_nfev)
+
+    early = fitting.solve(prob, method="trust_region", max_steps=3, progress=False)
+    ref = scipy_fit(4)  # scipy counts the evaluation at the start
+    np.testing.assert_allclose(np.asarray(early.u), ref.x, rtol=1e-8, atol=1e-10)
+    assert early.accepted_steps + 1 == ref.njev
+    full = fitting.solve(prob, method="trust_region", max_steps=200, progress=False)
+    ref = scipy_fit(None)
+    assert full.success and ref.status in (2, 3, 4), (full.reason, ref.message)
+    assert full.cost == pytest.approx(float(ref.cost), rel=1e-9)
+    np.testing.assert_allclose(np.asarray(full.u), ref.x, rtol=1e-6, atol=1e-8)
+    assert (full.steps + 1, full.accepted_steps + 1) == (ref.nfev, ref.njev)
+
+
+@pytest.mark.parametrize("method", ["levenberg_marquardt", "trust_region"])
+def test_a_trial_the_model_refuses_is_a_failed_trial(method):
+    # a runtime check of the model (eqx.error_if) on trial parameters rejects that trial and shrinks the step; it
+    # does not abort the fit (here the first Levenberg–Marquardt trial lands at a > 20)
+    class Gain(eqx.Module):
+        a: jax.Array
+
+    def predict(m, d):
+        y = jnp.exp(m.a) * d.v_in
+        return {"displacement": eqx.error_if(y, m.a > 1.2, "`a` must be at most 1.2")}
+
+    t = np.arange(400) * DT
+    v = 10 * np.sin(2 * np.pi * 5 * t)
+    rng = np.random.default_rng(0)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, name="g",
+                                                         displacement=np.e * v + 1e-3 * rng.standard_normal(t.size))])
+    prob = fitting.Problem(Gain(jnp.asarray(-3.0)), ds, predictor=fitting.Predictor(predict, ("displacement",)))
+    if method == "levenberg_marquardt":
+        first = fitting.solve(prob, method=method, max_steps=1, progress=False)
+        assert first.accepted_steps == 0 and first.cost == first.initial_cost
+    res = fitting.solve(prob, method=method, progress=False)
+    assert res.success, res.reason
+    assert res.values[0] == pytest.approx(1.0, abs=5 * res.std_errors[0])
 
 
 def test_padding_equals_separate_problems(data):
@@ -216,6 +277,8 @@ def test_bad_input_errors(data):
         short = fitting.Dataset([fitting.Experiment.from_arrays(dt=DT, v_in=[0.0, 1.0, 2.0], name="s",
                                                                 displacement=[0.0, 1.0, 2.0])])
         fitting.Problem(model, short)
+    with pytest.raises(PiezojaxValueError, match="`method`"):
+        fitting.solve(fitting.Problem(model, data, free=["hysteresis.w0"]), method="bfgs", progress=False)
     with pytest.raises(PiezojaxValueError, match="v_in.*NaN|NaN.*v_in|non-finite|finite"):
         fitting.Experiment.from_arrays(dt=DT, v_in=[0.0, np.nan, 2.0], name="nan", displacement=[0.0, 1.0, 2.0])
 
