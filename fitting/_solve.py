@@ -408,7 +408,9 @@ def solve(
     - `throw`: raise `RuntimeError` with the reason when the fit fails, instead of returning a failed result.
 
     **Returns:** a `FitResult`. A failed fit (max steps, stall, non-finite predictions, Ctrl-C) is returned with
-    `success=False`, its `reason`, and the last *accepted* parameters — never NaN parameters.
+    `success=False`, its `reason`, and the last *accepted* parameters — never NaN parameters. A trial step at which
+    the model raises a runtime check (`eqx.error_if`, e.g. a parameter that underflowed to an invalid value) is a
+    rejected trial, like one with non-finite predictions: the step shrinks (for every start of a multi-start batch).
 
     Not itself jit-able (a Python loop, so that progress and Ctrl-C work); each trial and each linearisation is one
     compiled call.
