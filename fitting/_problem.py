@@ -246,15 +246,26 @@ def _physical_jacobian(core: ProblemCore, mask, u):
 _JACOBIAN_BUDGET = 256 * 2**20
 
 
+def _over_starts(fn, in_axes, n_starts):
+    """`fn` mapped over the starts (the arguments with `in_axes` 0): `eqx.filter_vmap`, or for a single start a plain
+    call with the axis added back (a unit batch axis makes XLA:CPU copy arrays to move it: measured ~20 % of a
+    linearisation)."""
+    if n_starts > 1:
+        return eqx.filter_vmap(fn, in_axes=in_axes)
+
+    def call(*args):
+        args = [jtu.tree_map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, in_axes)]
+        return jtu.tree_map(lambda x: x[None], fn(*args))
+
+    return call
+
+
 @eqx.filter_jit
 def _linearise(core: ProblemCore, u):
     r"""`core.normal_equations` for each row of `u` (shape `(starts, p)`), under `vmap`: `(r, cost, g, H, finite)`
     with the cost $\tfrac12\|r\|^2$ and whether $g$ and $H$ are finite, per start. One compiled function for the
     solver, the problem's set-up and the results (the checks inside it, not as separate small computations)."""
-    if u.shape[0] == 1:  # one start: no unit batch axis (XLA:CPU copies arrays to move unit axes)
-        r, g, h = (x[None] for x in core.normal_equations(u[0]))
-    else:
-        r, g, h = jax.vmap(core.normal_equations)(u)
+    r, g, h = _over_starts(core.normal_equations, (0,), u.shape[0])(u)
     finite = jnp.all(jnp.isfinite(g), axis=1) & jnp.all(jnp.isfinite(h), axis=(1, 2))
     return r, 0.5 * jnp.sum(r**2, axis=1), g, h, finite
 
@@ -498,13 +509,10 @@ class Problem:
     def parameter_names(self) -> list[str]:
         """Names of the free physical parameters, one per scalar (`"hysteresis.weights[3]"`), in `physical` order."""
         names = []
-        for path, value in self._free_physical_tree(self.model).items():
+        for path, value in _free_physical_tree(self.model, self.mask).items():
             a = np.asarray(value)
             names += [path] if a.ndim == 0 else [f"{path}[{j}]" for j in range(a.size)]
         return names
-
-    def _free_physical_tree(self, params) -> dict[str, Array]:
-        return _free_physical_tree(params, self.mask)
 
     def u_of(self, model, name: str = "model") -> Float[Array, " p"]:
         """The scaled free parameters `u` of `model`, a model of the same structure as the problem's (same blocks,

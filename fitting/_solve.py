@@ -17,7 +17,7 @@ import optimistix as optx
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._problem import Problem, _linearise
+from ._problem import Problem, _linearise, _over_starts
 from ._results import FitResult, summarise
 
 
@@ -79,20 +79,6 @@ def _trial_one(descent, search, core, y, r, cost, g, h, step_size, search_state,
             result == optx.RESULTS.successful)
 
 
-def _over_starts(fn, in_axes, n_starts):
-    """`fn` mapped over the starts (the arguments with `in_axes` 0): `eqx.filter_vmap`, or for a single start a plain
-    call with the axis added back (a unit batch axis makes XLA:CPU copy arrays to move it: measured ~20 % of a
-    linearisation)."""
-    if n_starts > 1:
-        return eqx.filter_vmap(fn, in_axes=in_axes)
-
-    def call(*args):
-        args = [jtu.tree_map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, in_axes)]
-        return jtu.tree_map(lambda x: x[None], fn(*args))
-
-    return call
-
-
 @eqx.filter_jit
 def _trial(descent, search, core, y, r, cost, g, h, step_size, search_state, rtol, atol, active):
     """`_trial_one` for every start (leading axis of `y`, `r`, `cost`, `g`, `h`, `step_size`, `search_state`,
@@ -108,10 +94,10 @@ def _column_norms(h):
 
 
 def _tr_subproblem(lam, vecs, suf, delta, alpha, m, max_iter=10, rtol=0.01):
-    r"""scipy's `solve_lsq_trust_region` from the eigen-decomposition of $\hat H = \hat J^	op \hat J$ instead of the
-    SVD of $\hat J$ ($s_i^2 = $ `lam` descending, $V$ = `vecs`, $s \odot U^	op r = V^	op \hat g$ = `suf`): the
-    Gauss–Newton step if it is inside the radius `delta`, else the step $-(\hat H + lpha I)^{-1}\hat g$ with
-    $\|p\| = \Delta$ (Moré's Newton iteration on $lpha$ from `alpha`, relative tolerance 1 %). **Returns:**
+    r"""scipy's `solve_lsq_trust_region` from the eigen-decomposition of $\hat H = \hat J^\top \hat J$ instead of the
+    SVD of $\hat J$ ($s_i^2 = $ `lam` descending, $V$ = `vecs`, $s \odot U^\top r = V^\top \hat g$ = `suf`): the
+    Gauss–Newton step if it is inside the radius `delta`, else the step $-(\hat H + \alpha I)^{-1}\hat g$ with
+    $\|p\| = \Delta$ (Moré's Newton iteration on $\alpha$ from `alpha`, relative tolerance 1 %). **Returns:**
     `(p, alpha)`."""
     s = jnp.sqrt(lam)
     full_rank = s[-1] > jnp.finfo(lam.dtype).eps * m * s[0]
@@ -209,10 +195,10 @@ def _where(mask, new, old):
     return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
-def _levenberg_marquardt(u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
+def _iterate(u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
                          label="", max_rejections=40, window=5, method="levenberg_marquardt") -> list[_Run]:
-    r"""Levenberg–Marquardt in normal-equation form from every start in `u0` (shape `(starts, p)`) at once, stepped
-    from Python.
+    r"""Levenberg–Marquardt or the trust-region method, in normal-equation form, from every start in `u0` (shape
+    `(starts, p)`) at once, stepped from Python.
 
     `method="levenberg_marquardt"`: `optx.LevenbergMarquardt`'s algorithm — damped Newton descent
     $(H + \lambda I)\delta = -g$ with the Gauss–Newton $H = J^\top J$, $g = J^\top r$, and the classical
@@ -442,7 +428,7 @@ def solve(
             frozen = set_smoothing(frozen, s)
         label = f"[smoothing {s:g}] " if s is not None else ""
         level = problem.with_frozen(frozen)
-        runs = _levenberg_marquardt(u, level.core, rtol=rtol, atol=atol, ftol=ftol, max_steps=max_steps,
+        runs = _iterate(u, level.core, rtol=rtol, atol=atol, ftol=ftol, max_steps=max_steps,
                                     linear_solver=linear_solver, progress=progress, label=label, method=method)
         for i, run in enumerate(runs):
             per_start[i].append((s, run))
