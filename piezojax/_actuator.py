@@ -2,11 +2,10 @@
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import PiezojaxValueError, as_float_array, check_scalar, check_signal, concrete_or_none
-from ._creep.base import AbstractCreep, check_dt
+from ._checks import PiezojaxValueError, check_finite, check_positive, check_scalar, check_signal, check_step
+from ._creep.base import AbstractCreep
 from ._creep.linear import LinearCreep
 from ._custom_types import Signal, SignalLike
 from ._hysteresis.base import AbstractHysteresis, cast_module, module_float_dtype
@@ -68,8 +67,8 @@ class Actuator(eqx.Module):
     - `creep`: an `AbstractCreep` (`LogarithmicCreep`, `KelvinVoigtCreep`, `LinearCreep`), an
       `AbstractLinearSystem` (wrapped as `LinearCreep`), or `None`.
     - `dynamics`: an `AbstractLinearSystem` $G(s)$ from the driving term to displacement, or `None`.
-    - `capacitance`: $C_p \ge 0$ [F].
-    - `coupling`: $T$ [C/m], the charge per unit displacement (default 0).
+    - `capacitance`: $C_p \ge 0$ [F], finite.
+    - `coupling`: $T$ [C/m], the charge per unit displacement, finite (default 0).
     - `structure`: `"parallel"` or `"series"` (static).
 
     **Example:**
@@ -113,33 +112,22 @@ class Actuator(eqx.Module):
             )
         if structure not in _STRUCTURES:
             raise PiezojaxValueError(f"`structure` must be one of {_STRUCTURES}, got {structure!r}")
-        capacitance_value = concrete_or_none(capacitance)
-        if capacitance_value is not None and not (
-            np.all(np.isfinite(capacitance_value)) and np.all(capacitance_value >= 0)
-        ):
-            raise PiezojaxValueError(f"`capacitance` must be finite and >= 0, got {capacitance_value}")
-        coupling_value = concrete_or_none(coupling)
-        if coupling_value is not None and not np.all(np.isfinite(coupling_value)):
-            raise PiezojaxValueError(f"`coupling` must be finite, got {coupling_value}")
         # plain numbers follow the blocks' dtype (float32 blocks stay float32)
         typed = [x for x in (capacitance, coupling) if hasattr(x, "dtype")]
         dtype = module_float_dtype((hysteresis, creep, dynamics), *typed)
         self.hysteresis = hysteresis
         self.creep = creep
         self.dynamics = dynamics
-        self.capacitance = check_scalar(as_float_array(capacitance, "capacitance", dtype), "capacitance")
-        self.coupling = check_scalar(as_float_array(coupling, "coupling", dtype), "coupling")
+        capacitance = check_scalar(capacitance, "capacitance", dtype, finite=False)
+        self.capacitance = check_positive(capacitance, "capacitance", allow_zero=True)
+        self.coupling = check_scalar(coupling, "coupling", dtype)
         self.structure = structure
 
     def check(self) -> "Actuator":
-        """`self` with the data-dependent checks of `capacitance` and `coupling` attached (`eqx.error_if`)."""
-        c = eqx.error_if(
-            self.capacitance,
-            ~(jnp.isfinite(self.capacitance) & (self.capacitance >= 0)),
-            "`capacitance` must be finite and >= 0",
-        )
-        t = eqx.error_if(self.coupling, ~jnp.isfinite(self.coupling), "`coupling` must be finite")
-        return eqx.tree_at(lambda m: (m.capacitance, m.coupling), self, (c, t))
+        """`self` with the value checks of `capacitance` and `coupling` attached (`check_value`); each block checks
+        its own parameters when it runs."""
+        c = check_positive(self.capacitance, "capacitance", allow_zero=True)
+        return eqx.tree_at(lambda m: (m.capacitance, m.coupling), self, (c, check_finite(self.coupling, "coupling")))
 
     def drive(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
         r"""The input of the dynamics: $\mathcal{H}[V] + \mathcal{C}[V]$ (parallel) or $\mathcal{C}[\mathcal{H}[V]]$
@@ -151,7 +139,8 @@ class Actuator(eqx.Module):
 
         **Arguments:**
 
-        - `v_in`: applied voltage samples [V], shape `(time,)`; `jax.vmap` over a batch of equal-length records.
+        - `v_in`: applied voltage samples [V] (real, finite), shape `(time,)`; `jax.vmap` over a batch of
+          equal-length records.
         - `dt`: sample step [s] (scalar > 0).
         - `hold`: how the creep and dynamics see their sampled inputs between samples, `"zoh"` or `"foh"`.
 
@@ -175,7 +164,7 @@ class Actuator(eqx.Module):
             raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         dtype = module_float_dtype(self, v_in, dt)
         v = check_signal(v_in, "v_in", dtype)
-        dt = check_dt(dt, dtype)
+        dt = check_step(dt, "dt", dtype)
         return cast_module(self, dtype).check(), v, dt
 
     @staticmethod

@@ -1,14 +1,20 @@
 """Input validation shared by all blocks.
 
-Shape problems raise `ValueError` at trace time; value problems that depend on data (NaN, ordering, uniform time)
-are checked with `eqx.error_if` so they also fire under `jit` and `vmap`.
+Shape and dtype problems raise `PiezojaxValueError` at trace time. Value problems (NaN, sign, ordering, uniform
+time) go through one helper, `check_value`: a `PiezojaxValueError` when the value is concrete, `eqx.error_if` when it
+is traced, so the same check also fires under `jit` and `vmap`.
 """
+
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike
+from jaxtyping import Array, ArrayLike, PyTree
+
+_X = TypeVar("_X")
 
 
 class PiezojaxValueError(ValueError):
@@ -18,65 +24,18 @@ class PiezojaxValueError(ValueError):
 def common_float_dtype(*xs: ArrayLike) -> np.dtype:
     """The floating dtype that holds every argument without loss (float32 stays float32).
 
-    Explicit, so it works under `jax_numpy_dtype_promotion='strict'`.
+    Explicit, so it works under `jax_numpy_dtype_promotion='strict'`. Complex arguments are ignored here (they are
+    rejected, naming the argument, by `as_float_array`).
     """
     dtype = None
     for x in xs:
         d = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
-        if not jnp.issubdtype(d, jnp.inexact):
+        if not jnp.issubdtype(d, jnp.floating):
             continue
         dtype = d if dtype is None else np.promote_types(dtype, d)
     if dtype is None:
         dtype = jnp.zeros(()).dtype  # default float dtype (float32 or float64 under x64)
     return jax.dtypes.canonicalize_dtype(dtype)
-
-
-def as_float_array(x: ArrayLike, name: str, dtype=None) -> Array:
-    """Convert to a floating JAX array, naming `name` if that is impossible."""
-    try:
-        arr = jnp.asarray(x)
-    except (TypeError, ValueError) as e:
-        raise PiezojaxValueError(f"`{name}` must be array-like of floats, got {type(x).__name__}") from e
-    if not jnp.issubdtype(arr.dtype, jnp.inexact):
-        arr = arr.astype(dtype if dtype is not None else jnp.zeros(()).dtype)
-    elif dtype is not None:
-        arr = arr.astype(dtype)
-    return arr
-
-
-def check_signal(x: ArrayLike, name: str = "signal", dtype=None) -> Array:
-    """Validate a sampled signal: 1-D, non-empty, finite (NaN/inf checked with `eqx.error_if`)."""
-    arr = as_float_array(x, name, dtype)
-    if arr.ndim != 1:
-        raise PiezojaxValueError(
-            f"`{name}` must be a 1-D signal of shape (time,), got shape {tuple(arr.shape)}; "
-            "use jax.vmap for a batch of signals"
-        )
-    if arr.shape[0] == 0:
-        raise PiezojaxValueError(f"`{name}` must not be empty")
-    return check_finite(arr, name)
-
-
-def check_finite(x: Array, name: str) -> Array:
-    """`eqx.error_if` on any NaN or infinite entry, naming `name`."""
-    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), f"`{name}` contains NaN or infinite values")
-
-
-def check_vector(x: ArrayLike, name: str, dtype=None, allow_empty: bool = False) -> Array:
-    """Validate a 1-D parameter vector (shape only; values are checked by the caller)."""
-    arr = as_float_array(x, name, dtype)
-    if arr.ndim != 1:
-        raise PiezojaxValueError(f"`{name}` must be 1-D, got shape {tuple(arr.shape)}")
-    if not allow_empty and arr.shape[0] == 0:
-        raise PiezojaxValueError(f"`{name}` must not be empty")
-    return arr
-
-
-def check_scalar(x: ArrayLike, name: str, dtype=None) -> Array:
-    arr = as_float_array(x, name, dtype)
-    if arr.ndim != 0:
-        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(arr.shape)}")
-    return arr
 
 
 def concrete_or_none(x: Array):
@@ -89,3 +48,134 @@ def concrete_or_none(x: Array):
         return np.asarray(x)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
         return None
+
+
+def is_traced(x: PyTree) -> bool:
+    """True if any leaf of `x` is a tracer (under `jit`, `vmap`, `grad`, ...), i.e. its value is not known now."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(x))
+
+
+def check_value(x: _X, ok: Callable[[_X], ArrayLike] | ArrayLike, message: str | Sequence[str]) -> _X:
+    """The one value check: raise if `x` is concrete and invalid, attach `eqx.error_if` if it is traced.
+
+    **Arguments:**
+
+    - `x`: the checked array (or a tuple of arrays); when traced, the returned copy carries the check: use it in
+      place of `x`.
+    - `ok`: a predicate `ok(x)` giving a boolean array, True where `x` is valid (every entry must be True); or that
+      boolean array itself. A predicate is evaluated eagerly for a concrete `x` even inside `jit` (a closed-over
+      parameter stays concrete, which keeps e.g. the concrete `smoothing == 0` fast paths).
+    - `message`: what is wrong, naming the argument, e.g. "`weights` contains NaN or infinite values". Or one message
+      per entry of a 1-D `ok`: then the first failing entry's message is reported, still with a single
+      `eqx.branched_error_if` when traced (one check to compile for several conditions).
+
+    **Returns:** `x`, or `x` with the check attached when `x` or `ok` is traced.
+
+    **Raises:** `PiezojaxValueError` with the message when the check fails on concrete values; the value of `x` is
+    appended when `x` is one short array (at most 8 numbers).
+    """
+    messages = None if isinstance(message, str) else list(message)
+
+    def attach(good):
+        if messages is None:
+            return eqx.error_if(x, ~jnp.all(good), message)
+        good = jnp.asarray(good)
+        return eqx.branched_error_if(x, ~jnp.all(good), jnp.argmin(good), messages)
+
+    if is_traced(x):
+        return attach(ok(x) if callable(ok) else ok)
+    with jax.ensure_compile_time_eval():
+        good = ok(x) if callable(ok) else ok
+        if is_traced(good):  # an array computed from a concrete `x` under `jit` (pass a predicate to avoid this)
+            return attach(good)
+        good = np.asarray(good)
+    if not np.all(good):
+        text = message if messages is None else messages[int(np.argmin(good))]
+        if eqx.is_array(x) and x.size <= 8:
+            value = np.asarray(x)
+            text = f"{text}, got {value.tolist() if value.ndim else value.item()}"
+        raise PiezojaxValueError(text)
+    return x
+
+
+def check_finite(x: Array, name: str) -> Array:
+    """`check_value` that every entry of `x` is finite, naming `name` (the dtype must be real floating)."""
+    check_real_dtype(x, name)
+    return check_value(x, lambda a: jnp.all(jnp.isfinite(a)), f"`{name}` contains NaN or infinite values")
+
+
+def check_real_dtype(x: ArrayLike, name: str) -> None:
+    """Raise naming `name` if `x` is complex or boolean (both are mistakes for a parameter or a signal)."""
+    dtype = getattr(x, "dtype", None)
+    if dtype is None:
+        return
+    if jnp.issubdtype(dtype, jnp.complexfloating):
+        raise PiezojaxValueError(f"`{name}` must be real, got the complex dtype {np.dtype(dtype).name}")
+    if jnp.issubdtype(dtype, jnp.bool_):
+        raise PiezojaxValueError(f"`{name}` must be numbers, got a boolean array")
+
+
+def as_float_array(x: ArrayLike, name: str, dtype=None) -> Array:
+    """Convert to a real floating JAX array, naming `name` if that is impossible (complex, boolean, not numeric).
+
+    A concrete argument gives a concrete array even inside `jit` (so its value checks run at trace time).
+    """
+    with jax.ensure_compile_time_eval():
+        try:
+            arr = jnp.asarray(x)
+        except (TypeError, ValueError) as e:
+            raise PiezojaxValueError(f"`{name}` must be array-like of floats, got {type(x).__name__}") from e
+        check_real_dtype(arr, name)
+        if not jnp.issubdtype(arr.dtype, jnp.floating):
+            arr = arr.astype(dtype if dtype is not None else jnp.zeros(()).dtype)
+        elif dtype is not None:
+            arr = arr.astype(dtype)
+    return arr
+
+
+def check_signal(x: ArrayLike, name: str = "signal", dtype=None) -> Array:
+    """Validate a sampled signal: real (not complex or boolean), 1-D, non-empty, finite (`check_finite`)."""
+    arr = as_float_array(x, name, dtype)
+    if arr.ndim != 1:
+        raise PiezojaxValueError(
+            f"`{name}` must be a 1-D signal of shape (time,), got shape {tuple(arr.shape)}; "
+            "use jax.vmap for a batch of signals"
+        )
+    if arr.shape[0] == 0:
+        raise PiezojaxValueError(f"`{name}` must not be empty")
+    return check_finite(arr, name)
+
+
+def check_vector(x: ArrayLike, name: str, dtype=None, allow_empty: bool = False, finite: bool = True) -> Array:
+    """Validate a 1-D real parameter vector; with `finite` (default) also that every entry is finite."""
+    arr = as_float_array(x, name, dtype)
+    if arr.ndim != 1:
+        raise PiezojaxValueError(f"`{name}` must be 1-D, got shape {tuple(arr.shape)}")
+    if not allow_empty and arr.shape[0] == 0:
+        raise PiezojaxValueError(f"`{name}` must not be empty")
+    return check_finite(arr, name) if finite else arr
+
+
+def check_scalar(x: ArrayLike, name: str, dtype=None, finite: bool = True) -> Array:
+    """Validate a real scalar parameter; with `finite` (default) also that it is finite."""
+    arr = as_float_array(x, name, dtype)
+    if arr.ndim != 0:
+        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(arr.shape)}")
+    return check_finite(arr, name) if finite else arr
+
+
+def check_step(dt: ArrayLike, name: str = "dt", dtype=None) -> Array:
+    """Validate a sample step: a real scalar, finite and > 0 (`check_value`), naming `name`."""
+    arr = as_float_array(dt, name, dtype)
+    if arr.ndim != 0:
+        raise PiezojaxValueError(
+            f"`{name}` must be a scalar sample step, got shape {tuple(arr.shape)}; a signal is sampled uniformly"
+        )
+    return check_value(arr, lambda x: jnp.isfinite(x) & (x > 0), f"`{name}` must be a finite sample step > 0")
+
+
+def check_positive(x: Array, name: str, allow_zero: bool = False) -> Array:
+    """`check_value` that every entry of `x` is finite and > 0 (>= 0 with `allow_zero`), naming `name`."""
+    if allow_zero:
+        return check_value(x, lambda a: jnp.all(jnp.isfinite(a) & (a >= 0)), f"`{name}` must be finite and >= 0")
+    return check_value(x, lambda a: jnp.all(jnp.isfinite(a) & (a > 0)), f"`{name}` must be finite and > 0")

@@ -20,9 +20,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jaxtyping import Array, ArrayLike, PyTree
 
-from ._checks import PiezojaxValueError, as_float_array, concrete_or_none
+from ._checks import PiezojaxValueError, as_float_array, check_finite, check_value
 
 _T = TypeVar("_T")
 
@@ -58,15 +59,16 @@ class Positive(AbstractReparam):
     Use `Positive.from_value(x)` to wrap an existing positive value.
     """
 
-    raw: Array = eqx.field(converter=jnp.asarray)
+    raw: Array
+
+    def __init__(self, raw: ArrayLike):
+        self.raw = check_finite(as_float_array(raw, "raw"), "raw")
 
     @classmethod
     def from_value(cls, value: ArrayLike) -> "Positive":
-        """Wrap a strictly positive `value` (raises naming `value` if a concrete entry is ≤ 0)."""
-        value = as_float_array(value, "value")
-        concrete = concrete_or_none(value)
-        if concrete is not None and not (concrete > 0).all():
-            raise PiezojaxValueError(f"`value` must be strictly positive for Positive, got {concrete}")
+        """Wrap a finite, strictly positive `value` (raises naming `value` otherwise)."""
+        value = check_finite(as_float_array(value, "value"), "value")
+        value = check_value(value, lambda x: jnp.all(x > 0), "`value` must be strictly positive for Positive")
         return cls(inv_softplus(value))
 
     def unwrap(self) -> Array:
@@ -86,21 +88,25 @@ class OrderedPositive(AbstractReparam):
     - `lower`: the bound every entry stays strictly above (a constant, not fitted).
     """
 
-    raw: Array = eqx.field(converter=jnp.asarray)
-    lower: float = eqx.field(static=True, default=0.0)
+    raw: Array
+    lower: float = eqx.field(static=True)
+
+    def __init__(self, raw: ArrayLike, lower: float = 0.0):
+        if not np.isfinite(lower):
+            raise PiezojaxValueError(f"`lower` must be a finite number, got {lower}")
+        self.raw = check_finite(as_float_array(raw, "raw"), "raw")
+        self.lower = lower
 
     @classmethod
     def from_value(cls, value: ArrayLike, lower: float = 0.0) -> "OrderedPositive":
-        """Wrap a strictly ascending 1-D `value` with every entry > `lower`."""
-        value = as_float_array(value, "value")
+        """Wrap a finite, strictly ascending 1-D `value` with every entry > `lower`."""
+        value = check_finite(as_float_array(value, "value"), "value")
         if value.ndim != 1:
             raise PiezojaxValueError(f"`value` must be 1-D for OrderedPositive, got shape {value.shape}")
         gaps = jnp.diff(value, prepend=jnp.asarray([lower], value.dtype))
-        concrete = concrete_or_none(gaps)
-        if concrete is not None and not (concrete > 0).all():
-            raise PiezojaxValueError(
-                f"`value` must be strictly ascending and above {lower} for OrderedPositive, got {value}"
-            )
+        gaps = check_value(
+            gaps, lambda x: jnp.all(x > 0), f"`value` must be strictly ascending and above {lower} for OrderedPositive"
+        )
         return cls(inv_softplus(gaps), lower)
 
     def unwrap(self) -> Array:
@@ -116,21 +122,23 @@ class Bounded(AbstractReparam):
     - `low`, `high`: the bounds (constants, `low < high`).
     """
 
-    raw: Array = eqx.field(converter=jnp.asarray)
+    raw: Array
     low: float = eqx.field(static=True)
     high: float = eqx.field(static=True)
 
-    def __check_init__(self):
-        if not self.low < self.high:
-            raise PiezojaxValueError(f"Bounded needs `low` < `high`, got low={self.low}, high={self.high}")
+    def __init__(self, raw: ArrayLike, low: float, high: float):
+        if not (np.isfinite(low) and np.isfinite(high) and low < high):
+            raise PiezojaxValueError(f"Bounded needs finite `low` < `high`, got low={low}, high={high}")
+        self.raw = check_finite(as_float_array(raw, "raw"), "raw")
+        self.low, self.high = low, high
 
     @classmethod
     def from_value(cls, value: ArrayLike, low: float, high: float) -> "Bounded":
         """Wrap a `value` strictly inside `(low, high)`."""
         value = as_float_array(value, "value")
-        concrete = concrete_or_none(value)
-        if concrete is not None and not ((concrete > low) & (concrete < high)).all():
-            raise PiezojaxValueError(f"`value` must lie strictly inside ({low}, {high}), got {concrete}")
+        value = check_value(
+            value, lambda x: jnp.all((x > low) & (x < high)), f"`value` must lie strictly inside ({low}, {high})"
+        )
         p = (value - low) / (high - low)
         return cls(jnp.log(p) - jnp.log1p(-p), low, high)
 

@@ -386,15 +386,17 @@ def test_bad_input_errors_name_the_argument():
     with pytest.raises(ValueError, match="`dt`"):
         G.simulate(u, np.array([0.1, 0.1]))
     with pytest.raises(RuntimeError, match="`dt`"):
-        eqx.filter_jit(lambda d: G.simulate(u, d))(-0.1)
+        eqx.filter_jit(lambda d: G.simulate(u, d))(jnp.asarray(-0.1))  # traced: eqx.error_if at run time
+    with pytest.raises(ValueError, match="`dt`"):
+        eqx.filter_jit(lambda d: G.simulate(u, d))(-0.1)  # a Python float is static: checked at trace time
     with pytest.raises(ValueError, match="`hold`"):
         G.simulate(u, 0.1, hold="linear")
     with pytest.raises(ValueError, match="`u`"):
         G.simulate(np.ones((2, 10)), 0.1)
     with pytest.raises(ValueError, match="`u`"):
         G.simulate(np.ones(0), 0.1)
-    with pytest.raises(RuntimeError, match="`u`"):
-        G.simulate(np.array([1.0, np.nan]), 0.1)
+    with pytest.raises(ValueError, match="`u`"):
+        G.simulate(np.array([1.0, np.nan]), 0.1)  # concrete: PiezojaxValueError (traced: eqx.error_if)
     with pytest.raises(ValueError, match="`x0`"):
         G.simulate(u, 0.1, x0=np.zeros(2))
     with pytest.raises(ValueError, match="`num`"):

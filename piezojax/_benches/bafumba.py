@@ -10,7 +10,7 @@ from .._circuits.base import interval_current
 from .._linear.base import AbstractLinearSystem
 from .._linear.transfer_function import TransferFunction
 from .._observers.dynamic_impedance import DynamicImpedanceObserver
-from .common import Record, lag, measure, replace_fields
+from .common import Record, bench_param, bench_signal, lag, measure, replace_fields
 
 
 def unimorph_dynamics(static_gain: float = 1e-7, corner_hz: float = 30.0, resonance_hz: float = 380.0,
@@ -99,13 +99,19 @@ class BafumbaBench(eqx.Module):
         adc_bits: int = 16,
         sample_rate: float = 1e3,
     ):
-        f = lambda x: jnp.asarray(x, dtype=jnp.zeros(()).dtype)  # noqa: E731
-        self.capacitance, self.gamma, self.gamma_onset = f(capacitance), f(gamma), f(gamma_onset)
-        self.creep_charges, self.creep_times, self.creep_field = f(creep_charges), f(creep_times), f(creep_field)
-        self.feedback_resistance, self.bias_current, self.bias_drift = (
-            f(feedback_resistance), f(bias_current), f(bias_drift))
-        self.tia_time_constant, self.hv_time_constant = f(tia_time_constant), f(hv_time_constant)
-        self.alpha, self.beta = f(alpha), f(beta)
+        self.capacitance = bench_param(capacitance, "capacitance")
+        self.gamma = bench_param(gamma, "gamma")
+        self.gamma_onset = bench_param(gamma_onset, "gamma_onset")
+        self.creep_charges = bench_param(creep_charges, "creep_charges")
+        self.creep_times = bench_param(creep_times, "creep_times")
+        self.creep_field = bench_param(creep_field, "creep_field")
+        self.feedback_resistance = bench_param(feedback_resistance, "feedback_resistance")
+        self.bias_current = bench_param(bias_current, "bias_current")
+        self.bias_drift = bench_param(bias_drift, "bias_drift")
+        self.tia_time_constant = bench_param(tia_time_constant, "tia_time_constant")
+        self.hv_time_constant = bench_param(hv_time_constant, "hv_time_constant")
+        self.alpha = bench_param(alpha, "alpha")
+        self.beta = bench_param(beta, "beta")
         self.dynamics = unimorph_dynamics() if dynamics is None else dynamics
         self.v_out_noise, self.v_in_noise, self.displacement_noise = v_out_noise, v_in_noise, displacement_noise
         self.adc_bits, self.sample_rate = adc_bits, sample_rate
@@ -134,9 +140,7 @@ class BafumbaBench(eqx.Module):
         **Returns:** a `Record` with `t`, `v_in`, `v_out`, `displacement` (and `force=None`) plus the truth.
         """
         dtype = self.capacitance.dtype
-        v_cmd = jnp.asarray(v_command, dtype)
-        if v_cmd.ndim != 1 or v_cmd.shape[0] < 2:
-            raise ValueError(f"`v_command` must be 1-D with at least 2 samples, got shape {v_cmd.shape}")
+        v_cmd = bench_signal(v_command, "v_command", dtype)
         dt = jnp.asarray(1.0 / self.sample_rate, dtype)
         t = jnp.arange(v_cmd.shape[0], dtype=dtype) * dt
         v = lag(v_cmd, dt, self.hv_time_constant)

@@ -9,7 +9,7 @@ from .._circuits.base import apply_operator
 from .._circuits.smart_stack import SmartStackCircuit
 from .._hysteresis.bouc_wen import BoucWen
 from .._observers.sensor_layer import SensorLayerObserver
-from .common import Record, lag, measure, replace_fields
+from .common import Record, bench_param, bench_signal, lag, measure, replace_fields
 
 
 class ChenBench(eqx.Module):
@@ -70,8 +70,8 @@ class ChenBench(eqx.Module):
         d33 = force_sensitivity * amplifier_capacitance
         self.stack = SmartStackCircuit(d33, amplifier_capacitance, k_p, k_s, m_e, c_e, k_e, crosstalk=crosstalk)
         self.hysteresis = BoucWen(0.15, 0.01, 0.005, d=1.0) if hysteresis is None else hysteresis
-        f = lambda x: jnp.asarray(x, dtype=jnp.zeros(()).dtype)  # noqa: E731
-        self.stroke, self.amplifier_time_constant = f(stroke), f(amplifier_time_constant)
+        self.stroke = bench_param(stroke, "stroke")
+        self.amplifier_time_constant = bench_param(amplifier_time_constant, "amplifier_time_constant")
         self.v_s_noise, self.displacement_noise, self.force_noise = v_s_noise, displacement_noise, force_noise
         self.adc_bits, self.sample_rate = adc_bits, sample_rate
 
@@ -94,9 +94,7 @@ class ChenBench(eqx.Module):
         **Returns:** a `Record`: `v_in` = $V_a$, `v_out` = $V_s$, `displacement` = $x_a$, `force` = $F_s$.
         """
         dtype = self.stroke.dtype
-        v = jnp.asarray(v_a, dtype)
-        if v.ndim != 1 or v.shape[0] < 2:
-            raise ValueError(f"`v_a` must be 1-D with at least 2 samples, got shape {v.shape}")
+        v = bench_signal(v_a, "v_a", dtype)
         dt = jnp.asarray(1.0 / self.sample_rate, dtype)
         t = jnp.arange(v.shape[0], dtype=dtype) * dt
         x_a = self.stroke * apply_operator(self.hysteresis, v)

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from .._checks import PiezojaxValueError
+from .._checks import PiezojaxValueError, as_float_array, check_finite, check_signal
 
 
 class Record(eqx.Module):
@@ -33,6 +33,19 @@ class Record(eqx.Module):
     def dt(self) -> Array:
         """The sample step (also for a batch of records stacked along a leading axis)."""
         return self.t[..., 1] - self.t[..., 0]
+
+
+def bench_param(x: ArrayLike, name: str) -> Array:
+    """A bench parameter: a real, finite array of the default float dtype (`PiezojaxValueError` naming `name`)."""
+    return check_finite(as_float_array(x, name, jnp.zeros(()).dtype), name)
+
+
+def bench_signal(x: ArrayLike, name: str, dtype) -> Array:
+    """A drive signal: real, finite, 1-D with at least 2 samples (`PiezojaxValueError` naming `name`)."""
+    v = check_signal(x, name, dtype)
+    if v.shape[0] < 2:
+        raise PiezojaxValueError(f"`{name}` must be 1-D with at least 2 samples, got shape {v.shape}")
+    return v
 
 
 def adc(x: Array, bits: int, full_scale: float) -> Array:

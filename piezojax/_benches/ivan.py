@@ -6,17 +6,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
+from .._checks import PiezojaxValueError, check_finite, check_positive
 from .._circuits.base import apply_operator, running_integral
 from .._hysteresis.base import AbstractHysteresis
 from .._hysteresis.play import (
     _AbstractStopCell,
-    check_nonnegative,
-    error_if_negative,
     param_dtype,
     stop_update,
 )
 from .._observers.current_integration import ForceDisplacementObserver
-from .common import Record, lag, measure, replace_fields
+from .common import Record, bench_param, bench_signal, lag, measure, replace_fields
 
 
 def periodic_steps(levels=(-10.0, -20.0), period: float = 4.0, slope: float = 100.0, cycles: int = 3,
@@ -94,33 +93,33 @@ class GaussianPreisach(_AbstractStopCell):
     def __init__(self, density: ArrayLike, sigma_r: ArrayLike, sigma_s: ArrayLike, *, w0: ArrayLike = 1.0,
                  r_max: float = 100.0, n: int = 100, smoothing: float = 0.0):
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"`n` must be a positive int, got {n!r}")
+            raise PiezojaxValueError(f"`n` must be a positive int, got {n!r}")
         if not (np.isfinite(r_max) and r_max > 0):
-            raise ValueError(f"`r_max` must be finite and > 0, got {r_max!r}")
+            raise PiezojaxValueError(f"`r_max` must be finite and > 0, got {r_max!r}")
         dtype = param_dtype(density, sigma_r, sigma_s, w0)
         density, sigma_r = jnp.asarray(density, dtype), jnp.asarray(sigma_r, dtype)
         for name, x in (("density", density), ("sigma_r", sigma_r), ("sigma_s", sigma_s), ("w0", w0)):
             if jnp.ndim(x) != 0:
-                raise ValueError(f"`{name}` must be a scalar, got shape {jnp.shape(x)}")
-        check_nonnegative(density, "density")
+                raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {jnp.shape(x)}")
+        density = check_positive(density, "density", allow_zero=True)
+        sigma_r = check_positive(sigma_r, "sigma_r")
         h = float(r_max) / n
         r = jnp.asarray((np.arange(n) + 0.5) * h, dtype)
         self.thresholds = r
         self.weights = 2 * density * h * jnp.exp(-0.5 * (r / sigma_r) ** 2)
         self.sigma_s = jnp.asarray(sigma_s, dtype)
-        check_nonnegative(self.sigma_s, "sigma_s")
-        self.w0 = jnp.asarray(w0, dtype)
+        self.sigma_s = check_positive(self.sigma_s, "sigma_s", allow_zero=True)
+        self.w0 = check_finite(jnp.asarray(w0, dtype), "w0")
         # Static: a bench's truth keeps one form, and a traced smoothing would compile both loops (`lax.cond`).
         if not (isinstance(smoothing, (int, float, np.floating)) and np.isfinite(smoothing) and smoothing >= 0):
-            raise ValueError(f"`smoothing` must be a finite Python float >= 0 (0 = exact), got {smoothing!r}")
+            raise PiezojaxValueError(f"`smoothing` must be a finite Python float >= 0 (0 = exact), got {smoothing!r}")
         self.smoothing = float(smoothing)
 
     def check(self) -> "GaussianPreisach":
-        sig = eqx.error_if(self.sigma_s, ~(jnp.isfinite(self.sigma_s) & (self.sigma_s > 0)),
-                           "`sigma_s` must be finite and > 0")
+        sig = check_positive(self.sigma_s, "sigma_s")
         return eqx.tree_at(lambda o: (o.sigma_s, o.weights, o.thresholds), self,
-                           (sig, error_if_negative(self.weights, "weights"),
-                            error_if_negative(self.thresholds, "thresholds")))
+                           (sig, check_positive(self.weights, "weights", allow_zero=True),
+                            check_positive(self.thresholds, "thresholds", allow_zero=True)))
 
     def _output(self, v: Array, z: Array) -> Array:
         sig = self.sigma_s
@@ -266,17 +265,21 @@ class IvanBench(eqx.Module):
         adc_bits: int = 16,
         sample_rate: float = 1e3,
     ):
-        f = lambda x: jnp.asarray(x, dtype=jnp.zeros(()).dtype)  # noqa: E731
-        self.capacitance_p = f(capacitance_p)
+        self.capacitance_p = bench_param(capacitance_p, "capacitance_p")
         self.hysteresis = (GaussianPreisach(0.0161, 100.0, 100.0, w0=0.84, r_max=100.0, n=100)
                            if hysteresis is None else hysteresis)
-        self.creep_fractions, self.creep_times = f(creep_fractions), f(creep_times)
-        self.alpha = f(-capacitance_p / (blocking_force / beam_stiffness))
-        self.force_sensitivity, self.beam_stiffness = f(force_sensitivity), f(beam_stiffness)
-        self.sensor_stiffness, self.gap = f(sensor_stiffness), f(gap)
-        self.integrator_capacitance, self.reference_capacitance = f(integrator_capacitance), f(reference_capacitance)
-        self.leakage_resistance, self.bias_current, self.bias_drift = (
-            f(leakage_resistance), f(bias_current), f(bias_drift))
+        self.creep_fractions = bench_param(creep_fractions, "creep_fractions")
+        self.creep_times = bench_param(creep_times, "creep_times")
+        self.force_sensitivity = bench_param(force_sensitivity, "force_sensitivity")
+        self.beam_stiffness = bench_param(beam_stiffness, "beam_stiffness")
+        self.sensor_stiffness = bench_param(sensor_stiffness, "sensor_stiffness")
+        self.gap = bench_param(gap, "gap")
+        self.integrator_capacitance = bench_param(integrator_capacitance, "integrator_capacitance")
+        self.reference_capacitance = bench_param(reference_capacitance, "reference_capacitance")
+        self.leakage_resistance = bench_param(leakage_resistance, "leakage_resistance")
+        self.bias_current = bench_param(bias_current, "bias_current")
+        self.bias_drift = bench_param(bias_drift, "bias_drift")
+        self.alpha = bench_param(-capacitance_p / (blocking_force / beam_stiffness), "blocking_force")
         self.v_out_noise, self.force_noise, self.displacement_noise = v_out_noise, force_noise, displacement_noise
         self.adc_bits, self.sample_rate = adc_bits, sample_rate
 
@@ -317,9 +320,7 @@ class IvanBench(eqx.Module):
         **Returns:** a `Record` with `v_in`, `v_out` (integrator), `displacement` and `force` (reference sensors).
         """
         dtype = self.capacitance_p.dtype
-        v = jnp.asarray(v_in, dtype)
-        if v.ndim != 1 or v.shape[0] < 2:
-            raise ValueError(f"`v_in` must be 1-D with at least 2 samples, got shape {v.shape}")
+        v = bench_signal(v_in, "v_in", dtype)
         dt = jnp.asarray(1.0 / self.sample_rate, dtype)
         t = jnp.arange(v.shape[0], dtype=dtype) * dt
         q_v = self.free_charge(v, dt)

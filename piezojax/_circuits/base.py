@@ -16,70 +16,48 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, check_signal, concrete_or_none
+from .._checks import PiezojaxValueError, as_float_array, check_finite, check_positive, check_signal, check_step
 from .._hysteresis.base import cast_module, module_float_dtype
-from .._linear.discretise import check_dt
 
 
 def _float_array(x: ArrayLike, name: str) -> Array:
     # Python scalars become strongly typed default-float arrays: weak-typed leaves would retrace `jit` when a
     # fitter swaps in a strongly typed value.
-    try:
-        arr = jnp.asarray(x)
-    except (TypeError, ValueError) as e:
-        raise PiezojaxValueError(f"`{name}` must be a float scalar, got {type(x).__name__}") from e
-    if not jnp.issubdtype(arr.dtype, jnp.inexact) or getattr(arr, "weak_type", False):
-        dtype = arr.dtype if jnp.issubdtype(arr.dtype, jnp.inexact) else jnp.zeros(()).dtype
-        arr = jnp.array(arr, dtype=dtype, copy=True)
-        arr = jax.lax.convert_element_type(arr, dtype) if getattr(arr, "weak_type", False) else arr
+    arr = as_float_array(x, name)
+    if getattr(arr, "weak_type", False):
+        with jax.ensure_compile_time_eval():
+            arr = arr.astype(arr.dtype)
     return arr
 
 
 def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False) -> Array:
-    """Constructor check of a scalar parameter: a float array; `ValueError` naming `name` if concrete and not > 0."""
+    """Constructor check of a scalar parameter: a real scalar, finite and > 0 (>= 0 with `allow_zero`)."""
     x = _float_array(x, name)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
-    value = concrete_or_none(x)
-    if value is not None:
-        ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
-        if not ok:
-            bound = "≥ 0" if allow_zero else "> 0"
-            raise PiezojaxValueError(f"`{name}` must be finite and {bound}, got {value}")
-    return x
+    return check_positive(x, name, allow_zero)
 
 
 def check_scalar_param(x: ArrayLike, name: str) -> Array:
-    """Constructor check of a signed scalar parameter (finite if concrete)."""
+    """Constructor check of a signed scalar parameter: a real scalar, finite."""
     x = _float_array(x, name)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
-    value = concrete_or_none(x)
-    if value is not None and not np.isfinite(value):
-        raise PiezojaxValueError(f"`{name}` must be finite, got {value}")
-    return x
+    return check_finite(x, name)
 
 
 def error_if_not_positive(module: eqx.Module, names: tuple[str, ...], allow_zero: tuple[str, ...] = ()) -> eqx.Module:
-    """Attach `eqx.error_if` checks (> 0, finite) on the named scalar fields; returns the checked module."""
-    for name in names:
-        x = getattr(module, name)
-        bad = ~jnp.isfinite(x) | ((x < 0) if name in allow_zero else (x <= 0))
-        bound = "≥ 0" if name in allow_zero else "> 0"
-        x = eqx.error_if(x, bad, f"`{name}` must be finite and {bound}")
-        module = eqx.tree_at(lambda m, n=name: getattr(m, n), module, x)
-    return module
+    """`check_positive` on the named scalar fields (> 0, or >= 0 for those in `allow_zero`); the checked module."""
+    checked = tuple(check_positive(getattr(module, n), n, n in allow_zero) for n in names)
+    return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), module, checked)
 
 
 def error_if_not_finite(module: eqx.Module, names: tuple[str, ...]) -> eqx.Module:
-    for name in names:
-        x = getattr(module, name)
-        x = eqx.error_if(x, ~jnp.isfinite(x), f"`{name}` must be finite")
-        module = eqx.tree_at(lambda m, n=name: getattr(m, n), module, x)
-    return module
+    """`check_finite` on the named fields; the checked module."""
+    checked = tuple(check_finite(getattr(module, n), n) for n in names)
+    return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), module, checked)
 
 
 def prepare(module: eqx.Module, dt: ArrayLike, **signals: ArrayLike):
@@ -96,7 +74,7 @@ def prepare(module: eqx.Module, dt: ArrayLike, **signals: ArrayLike):
     if len(set(lengths.values())) > 1:
         desc = ", ".join(f"`{n}` has {m}" for n, m in lengths.items())
         raise PiezojaxValueError(f"channel lengths differ ({desc} samples); all channels must share one time grid")
-    dt = check_dt(dt, dtype)
+    dt = check_step(dt, "dt", dtype)
     module = cast_module(module, dtype).check()
     for name in signals:
         out.setdefault(name, None)
@@ -123,10 +101,15 @@ class AbstractCircuit(eqx.Module):
 
     Every circuit works under `jax.jit` (`eqx.filter_jit`), `jax.vmap`, `jax.grad` and `jax.jacfwd`. Running
     integrals over long records need float64 (enable x64) to keep the charge accurate.
+
+    Checks: constructors reject complex or boolean parameters and NaN/inf or out-of-range values with a
+    `PiezojaxValueError` naming the argument (`eqx.error_if` for traced values); every call rejects complex, boolean
+    or non-finite signals the same way and runs `check()`.
     """
 
     def check(self) -> "AbstractCircuit":
-        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
+        `eqx.error_if` if traced). Default: none."""
         return self
 
     @abc.abstractmethod

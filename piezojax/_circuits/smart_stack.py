@@ -4,6 +4,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import PiezojaxValueError
 from .._custom_types import Signal, SignalLike
 from .._linear.transfer_function import TransferFunction
 from .base import (
@@ -126,6 +127,6 @@ class SmartStackCircuit(AbstractCircuit):
         x = s["x_a"]
         if x is None:
             if m.actuator is None:
-                raise ValueError("`x_a` is required when the circuit has no `actuator`")
+                raise PiezojaxValueError("`x_a` is required when the circuit has no `actuator`")
             x = apply_operator(m.actuator, s["v_a"])
         return m.d33 / m.amplifier_capacitance * m._force(x, dt) + m.crosstalk * s["v_a"]

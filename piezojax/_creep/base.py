@@ -3,46 +3,11 @@
 import abc
 
 import equinox as eqx
-import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, as_float_array, check_signal, concrete_or_none
+from .._checks import PiezojaxValueError, check_signal, check_step
 from .._custom_types import Signal, SignalLike
 from .._hysteresis.base import cast_module, module_float_dtype
-
-
-def check_dt(dt: ArrayLike, dtype) -> Array:
-    """Validate a sample step: a finite scalar > 0 (ValueError if concrete, `eqx.error_if` if traced)."""
-    concrete = concrete_or_none(dt)  # before conversion: under jit, jnp.asarray of a number is traced
-    dt = as_float_array(dt, "dt", dtype)
-    if dt.ndim != 0:
-        raise PiezojaxValueError(f"`dt` must be a scalar sample step, got shape {tuple(dt.shape)}")
-    if concrete is not None and not (np.all(np.isfinite(concrete)) and concrete > 0):
-        raise PiezojaxValueError(f"`dt` must be a finite sample step > 0, got {concrete}")
-    return eqx.error_if(dt, ~(jnp.isfinite(dt) & (dt > 0)), "`dt` must be a finite sample step > 0")
-
-
-def check_positive(x: ArrayLike, name: str, allow_zero: bool = False, raw: ArrayLike | None = None) -> Array:
-    """Constructor check: raise naming `name` if a concrete entry is not (strictly) positive and finite.
-
-    `raw` is the argument as the user passed it (a number stays concrete under `jit`, its `jnp.asarray` may not).
-    """
-    concrete = concrete_or_none(x if raw is None else raw)
-    x = jnp.asarray(x)
-    if concrete is not None:
-        ok = (concrete >= 0) if allow_zero else (concrete > 0)
-        if not (np.all(np.isfinite(concrete)) and ok.all()):
-            bound = "≥ 0" if allow_zero else "> 0"
-            raise PiezojaxValueError(f"`{name}` must be finite and {bound}, got {concrete}")
-    return x
-
-
-def error_if_not_positive(x: Array, name: str, allow_zero: bool = False) -> Array:
-    """`eqx.error_if` version of `check_positive`, for values that may be traced."""
-    bad = ~jnp.isfinite(x) | ((x < 0) if allow_zero else (x <= 0))
-    bound = "≥ 0" if allow_zero else "> 0"
-    return eqx.error_if(x, jnp.any(bad), f"`{name}` must be finite and {bound}")
 
 
 class AbstractCreep(eqx.Module):
@@ -72,7 +37,8 @@ class AbstractCreep(eqx.Module):
         """$h(0^+)$: the part of the response that follows the input without delay."""
 
     def check(self) -> "AbstractCreep":
-        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
+        `eqx.error_if` if traced), run by `simulate` outside the scan. Default: none."""
         return self
 
     def simulate(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
@@ -80,7 +46,7 @@ class AbstractCreep(eqx.Module):
 
         **Arguments:**
 
-        - `u`: 1-D input samples, shape `(time,)`; use `jax.vmap` for a batch.
+        - `u`: 1-D real, finite input samples, shape `(time,)`; use `jax.vmap` for a batch.
         - `dt`: the sample step (scalar > 0).
         - `hold`: how the input moves between samples: `"zoh"` (held constant) or `"foh"` (linear).
 
@@ -90,7 +56,7 @@ class AbstractCreep(eqx.Module):
             raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         dtype = module_float_dtype(self, u, dt)
         u = check_signal(u, "u", dtype)
-        dt = check_dt(dt, dtype)
+        dt = check_step(dt, "dt", dtype)
         block = cast_module(self, dtype).check()
         return block._simulate(u, dt, hold)
 

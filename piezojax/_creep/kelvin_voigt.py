@@ -7,9 +7,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, check_scalar, check_vector, common_float_dtype
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_positive,
+    check_scalar,
+    check_vector,
+    common_float_dtype,
+)
 from .._hysteresis.play import _tangent_or_none
-from .base import AbstractCreep, check_positive, error_if_not_positive
+from .base import AbstractCreep
 
 
 def _foh_psi(x: Array) -> Array:
@@ -99,8 +106,8 @@ class KelvinVoigtCreep(AbstractCreep):
 
     **Arguments:**
 
-    - `stiffnesses`: $k_i > 0$, shape `(n,)`.
-    - `time_constants`: $\tau_i > 0$ [s], shape `(n,)`.
+    - `stiffnesses`: $k_i > 0$ (finite), shape `(n,)`.
+    - `time_constants`: $\tau_i > 0$ [s] (finite), shape `(n,)`.
     - `k0`: the instantaneous stiffness $k_0 > 0$, or `None` for no instantaneous term ($h(0^+) = 0$: the creep
       part alone, for use in parallel with the hysteresis). Default 1.0 ($h(0^+) = 1$, DC-normalised at $0^+$).
 
@@ -117,25 +124,26 @@ class KelvinVoigtCreep(AbstractCreep):
     k0: Array | None
 
     def __init__(self, stiffnesses: ArrayLike, time_constants: ArrayLike, k0: ArrayLike | None = 1.0):
-        k = check_vector(stiffnesses, "stiffnesses")
-        tau = check_vector(time_constants, "time_constants")
+        k = check_vector(stiffnesses, "stiffnesses", finite=False)
+        tau = check_vector(time_constants, "time_constants", finite=False)
         if k.shape != tau.shape:
             raise PiezojaxValueError(
                 f"`stiffnesses` and `time_constants` must have the same shape, got {tuple(k.shape)} "
                 f"and {tuple(tau.shape)}"
             )
-        self.stiffnesses = check_positive(k, "stiffnesses", raw=stiffnesses)
-        self.time_constants = check_positive(tau, "time_constants", raw=time_constants)
-        if isinstance(k0, int | float):  # a plain number follows the parameters' dtype (float32 stays float32)
-            k0 = jnp.asarray(k0, common_float_dtype(self.stiffnesses, self.time_constants))
-        self.k0 = None if k0 is None else check_positive(check_scalar(k0, "k0"), "k0", raw=k0)
+        self.stiffnesses = check_positive(k, "stiffnesses")
+        self.time_constants = check_positive(tau, "time_constants")
+        if isinstance(k0, int | float) and not isinstance(k0, bool):
+            # a plain number follows the parameters' dtype (float32 stays float32)
+            k0 = as_float_array(k0, "k0", common_float_dtype(self.stiffnesses, self.time_constants))
+        self.k0 = None if k0 is None else check_positive(check_scalar(k0, "k0", finite=False), "k0")
 
     def check(self) -> "KelvinVoigtCreep":
-        k = error_if_not_positive(self.stiffnesses, "stiffnesses")
-        tau = error_if_not_positive(self.time_constants, "time_constants")
+        k = check_positive(self.stiffnesses, "stiffnesses")
+        tau = check_positive(self.time_constants, "time_constants")
         out = eqx.tree_at(lambda m: (m.stiffnesses, m.time_constants), self, (k, tau))
         if self.k0 is not None:
-            out = eqx.tree_at(lambda m: m.k0, out, error_if_not_positive(self.k0, "k0"))
+            out = eqx.tree_at(lambda m: m.k0, out, check_positive(self.k0, "k0"))
         return out
 
     def _c0(self, dtype) -> Array:

@@ -4,8 +4,15 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, check_scalar, common_float_dtype
-from .base import AbstractCreep, check_positive, error_if_not_positive
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_finite,
+    check_positive,
+    check_scalar,
+    common_float_dtype,
+)
+from .base import AbstractCreep
 
 _LN10 = 2.302585092994046
 
@@ -69,7 +76,7 @@ class LogarithmicCreep(AbstractCreep):
 
     - `gamma`: creep rate per decade $\gamma$ (any finite value; positive for the usual forward creep).
     - `t0`: reference time $t_0 > 0$ [s] where the logarithm starts.
-    - `gain`: $g = \delta_0$, the response at $t_0$ to a unit step (default 1: DC-normalised at $t_0$).
+    - `gain`: $g = \delta_0$, the response at $t_0$ to a unit step, finite (default 1: DC-normalised at $t_0$).
     - `instantaneous`: include the instantaneous term 1 (static; default True).
 
     **Example:**
@@ -87,19 +94,18 @@ class LogarithmicCreep(AbstractCreep):
 
     def __init__(self, gamma: ArrayLike, t0: ArrayLike, gain: ArrayLike = 1.0, instantaneous: bool = True):
         self.gamma = check_scalar(gamma, "gamma")
-        self.t0 = check_positive(check_scalar(t0, "t0"), "t0", raw=t0)
-        if isinstance(gain, int | float):  # a plain number follows the parameters' dtype (float32 stays float32)
-            gain = jnp.asarray(gain, common_float_dtype(self.gamma, self.t0))
+        self.t0 = check_positive(check_scalar(t0, "t0", finite=False), "t0")
+        if isinstance(gain, int | float) and not isinstance(gain, bool):
+            # a plain number follows the parameters' dtype (float32 stays float32)
+            gain = as_float_array(gain, "gain", common_float_dtype(self.gamma, self.t0))
         self.gain = check_scalar(gain, "gain")
         if not isinstance(instantaneous, bool):
             raise PiezojaxValueError(f"`instantaneous` must be a bool, got {instantaneous!r}")
         self.instantaneous = instantaneous
 
     def check(self) -> "LogarithmicCreep":
-        t0 = error_if_not_positive(self.t0, "t0")
-        gamma = eqx.error_if(self.gamma, ~jnp.isfinite(self.gamma), "`gamma` must be finite")
-        gain = eqx.error_if(self.gain, ~jnp.isfinite(self.gain), "`gain` must be finite")
-        return eqx.tree_at(lambda m: (m.gamma, m.t0, m.gain), self, (gamma, t0, gain))
+        checked = (check_finite(self.gamma, "gamma"), check_positive(self.t0, "t0"), check_finite(self.gain, "gain"))
+        return eqx.tree_at(lambda m: (m.gamma, m.t0, m.gain), self, checked)
 
     def _offset(self) -> float:
         return 1.0 if self.instantaneous else 0.0

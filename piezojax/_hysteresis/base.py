@@ -41,6 +41,12 @@ class AbstractHysteresis(eqx.Module):
 
     `scan(signal, state)` runs the cell over a signal with `jax.lax.scan` and returns the final state with the
     output; `__call__(signal, state=None)` returns only the output.
+
+    Checks: every constructor rejects parameters of the wrong shape, complex or boolean parameters, and NaN/inf or
+    out-of-range values, with a `PiezojaxValueError` naming the argument; values traced under `jit`/`vmap` get the
+    same check as `eqx.error_if`. The call checks the signal (real, 1-D, non-empty, finite) and runs `check()`,
+    which repeats the value checks outside the scan, so parameters replaced after construction (`eqx.tree_at`, as a
+    fitter does) are checked too.
     """
 
     smoothing: eqx.AbstractVar[Array]
@@ -54,7 +60,8 @@ class AbstractHysteresis(eqx.Module):
         """Advance from the state's previous input to the input sample `v`; return `(state, y)`."""
 
     def check(self) -> "AbstractHysteresis":
-        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
+        `eqx.error_if` if traced). Default: none."""
         return self
 
     def scan(self, signal: SignalLike, state: PyTree[Array] | None = None) -> tuple[PyTree[Array], Signal]:
@@ -62,7 +69,7 @@ class AbstractHysteresis(eqx.Module):
 
         **Arguments:**
 
-        - `signal`: 1-D input samples, shape `(time,)`.
+        - `signal`: 1-D real, finite input samples, shape `(time,)` (complex or boolean: `PiezojaxValueError`).
         - `state`: the state to start from, e.g. the final state of an earlier call. Default: `self.init()`.
 
         **Returns:** `(final_state, y)` with `y` of shape `(time,)`.

@@ -1,6 +1,5 @@
 """The Bouc–Wen hysteresis operator in its rate-independent increment form."""
 
-import dataclasses
 from typing import Literal
 
 import equinox as eqx
@@ -8,13 +7,24 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_scalar, concrete_or_none
+from .._checks import PiezojaxValueError, check_scalar, check_value, concrete_or_none
 from .._custom_types import ScalarLike, Signal, SignalLike
 from .base import AbstractHysteresis
 from .play import param_dtype
 
 _OUTPUTS = ("dv-z", "dv+z", "z")
 _METHODS = ("closed_form", "rk4")
+_PARAMS = ("A", "beta", "gamma", "n", "d", "smoothing")
+_UNBOUNDED_MESSAGE = (
+    "unstable Bouc-Wen parameters (z grows without bound): need `beta` >= 0, and `beta` + `gamma` >= 0 if A > 0, "
+    "`beta` - `gamma` >= 0 if A < 0"
+)
+
+
+def _bounded(p: tuple[Array, Array, Array]) -> Array:
+    """True if z stays bounded from the relaxed state for every input (the condition in `BoucWen`'s docstring)."""
+    A, beta, gamma = p
+    return (beta >= 0) & ((A <= 0) | (beta + gamma >= 0)) & ((A >= 0) | (beta - gamma >= 0))
 
 
 def _phi(x: Array) -> Array:
@@ -129,9 +139,30 @@ class BoucWen(AbstractHysteresis):
       1.2e-6, 4.9e-7. RK4 is unstable for $h\,n(\beta+|\gamma|)\max|z|^{n-1} > 2.78$ (the stiffness
       of $f$ on either side of 0): raise `substeps` for large input steps.
 
-    If $A > 0$, $\beta + \gamma > 0$ and $\beta \ge |\gamma|$ then $|z| \le z_{\max} =
-    (A/(\beta+\gamma))^{1/n}$ for all inputs once it starts inside: $f(z_{\max}) = 0$, and $f(w) = A
-    + (\beta - \gamma)|w|^n > 0$ for $w < 0$.
+    **Allowed parameters (bounded $z$).** On the two sides of $w = 0$, $f(w) = A - (\beta+\gamma)w^n$
+    ($w \ge 0$) and $f(w) = A + (\beta-\gamma)|w|^n$ ($w < 0$), and a reversal of the input maps $w$
+    to $-w$. For $A > 0$, starting from the relaxed state:
+
+    - $\beta + \gamma > 0$ and $\beta \ge 0$: $|z| \le z_{\max} = (A/(\beta+\gamma))^{1/n}$ for every
+      input: $f(z_{\max}) = 0$, and for $-z_{\max} \le w < 0$, $f(w) \ge A + (\beta-\gamma)A/(\beta+\gamma)
+      = 2\beta A/(\beta+\gamma) \ge 0$. With $\beta \ge |\gamma|$ (the bounded class of Ikhouane &
+      Rodellar: $A > 0$, $\beta+\gamma > 0$, $\beta-\gamma \ge 0$) the bound $\max(|z_0|, z_{\max})$
+      holds from any initial state; with $\gamma > \beta$ only from $|z_0| \le z_{\max}$ (a state below
+      $-(A/(\gamma-\beta))^{1/n}$ runs away).
+    - $\beta + \gamma = 0$: no saturation: while $z$ moves with the input it grows linearly, $dw/du = A$,
+      and $|z|$ never grows faster than $A$ per unit of input travel (a linear term, no blow-up).
+      Allowed.
+    - $\beta + \gamma < 0$: a monotone input drives $z$ without bound ($f \ge A$ grows with $w$):
+      exponentially in the input travel for $n = 1$ (the closed form's $e^{|\beta+\gamma| u}$), to infinity
+      at a finite input travel for $n > 1$. Rejected.
+    - $\beta < 0$ (and $\beta + \gamma > 0$): a long monotone input brings $z$ near $z_{\max}$; after a
+      reversal $w = -z$ sits where $f < 0$ and runs away. Rejected.
+
+    $A < 0$ is the mirror image ($z \to -z$ swaps $\beta + \gamma$ and $\beta - \gamma$), and $A = 0$ keeps
+    $z = 0$ from rest. So the constructor and every call reject (`PiezojaxValueError` for concrete values,
+    `eqx.error_if` under `jit`, naming `beta` and `gamma`) unless $\beta \ge 0$, $\beta + \gamma \ge 0$ if
+    $A > 0$, and $\beta - \gamma \ge 0$ if $A < 0$; e.g. `BoucWen(1.0, -0.5, 0.01)`, whose closed form grows
+    like $e^{0.49\,u}$, is rejected. `BoucWenOscillator` (the benchmark's ODE) does not impose this.
 
     `smoothing` $s \ge 0$ (rk4 only) replaces $|w|$ by $\rho = \sqrt{w^2 + (s\,z_{\max})^2}$ in $f$,
     i.e. $f_s(w) = A - \beta\rho^{n-1}w - \gamma\rho^n$. This removes the kink of $f$ at $z = 0$
@@ -146,9 +177,9 @@ class BoucWen(AbstractHysteresis):
 
     **Arguments:**
 
-    - `A`, `beta`, `gamma`: the Bouc–Wen coefficients (scalars).
-    - `n`: the exponent, $n > 0$ (scalar), default 1.
-    - `d`: the linear coefficient of the output (scalar), default 0.
+    - `A`, `beta`, `gamma`: the Bouc–Wen coefficients (finite scalars; bounded $z$ as above).
+    - `n`: the exponent, $n > 0$ (finite scalar), default 1.
+    - `d`: the linear coefficient of the output (finite scalar), default 0.
     - `output` (static): `"dv-z"` ($y = d v - z$, default, the usual piezo form), `"dv+z"` ($y = d v
       + z$) or `"z"` ($y = z$).
     - `smoothing`: see above, default 0 (exact).
@@ -193,17 +224,19 @@ class BoucWen(AbstractHysteresis):
         self.A = check_scalar(A, "A", dtype)
         self.beta = check_scalar(beta, "beta", dtype)
         self.gamma = check_scalar(gamma, "gamma", dtype)
-        self.n = check_scalar(n, "n", dtype)
+        self.n = check_value(check_scalar(n, "n", dtype), lambda x: x > 0, "`n` must be > 0")
         self.d = check_scalar(d, "d", dtype)
-        self.smoothing = check_scalar(smoothing, "smoothing", dtype)
+        self.smoothing = check_value(
+            check_scalar(smoothing, "smoothing", dtype), lambda x: x >= 0, "`smoothing` must be >= 0 (0 = exact)"
+        )
+        coeffs = (self.A, self.beta, self.gamma)
+        values = [concrete_or_none(x) for x in coeffs]
+        got = "" if any(v is None for v in values) else ", got A={}, beta={}, gamma={}".format(*map(float, values))
+        self.A, self.beta, self.gamma = check_value(coeffs, _bounded, _UNBOUNDED_MESSAGE + got)
         if output not in _OUTPUTS:
             raise PiezojaxValueError(f"`output` must be one of {_OUTPUTS}, got {output!r}")
         n_val = concrete_or_none(self.n)
-        if n_val is not None and not n_val > 0:
-            raise PiezojaxValueError(f"`n` must be > 0, got {float(n_val)}")
         s_val = concrete_or_none(self.smoothing)
-        if s_val is not None and not s_val >= 0:
-            raise PiezojaxValueError(f"`smoothing` must be >= 0 (0 = exact), got {float(s_val)}")
         if method is None:
             method = (
                 "closed_form"
@@ -227,14 +260,27 @@ class BoucWen(AbstractHysteresis):
         self.substeps = substeps
 
     def check(self) -> "BoucWen":
-        n = eqx.error_if(self.n, ~(self.n > 0), "`n` must be > 0")
-        smoothing = eqx.error_if(self.smoothing, ~(self.smoothing >= 0), "`smoothing` must be >= 0")
-        if self.method == "closed_form":
-            n = eqx.error_if(n, n != 1, "`method='closed_form'` needs `n` = 1")
-            smoothing = eqx.error_if(
-                smoothing, smoothing != 0, "`smoothing` > 0 needs `method='rk4'`"
+        # One check (one `branched_error_if` when traced) for all parameters, outside the scan: it also covers
+        # parameters replaced after __init__ (`eqx.tree_at`, as a fitter does).
+        closed_form = self.method == "closed_form"
+
+        def ok(p):
+            A, beta, gamma, n, d, s = p
+            return jnp.stack(
+                [jnp.isfinite(x) for x in p]
+                + [n > 0, s >= 0, _bounded((A, beta, gamma))]
+                + ([n == 1, s == 0] if closed_form else [])
             )
-        return eqx.tree_at(lambda m: (m.n, m.smoothing), self, (n, smoothing))
+
+        messages = [f"`{name}` contains NaN or infinite values" for name in _PARAMS] + [
+            "`n` must be > 0",
+            "`smoothing` must be >= 0",
+            _UNBOUNDED_MESSAGE,
+        ]
+        if closed_form:
+            messages += ["`method='closed_form'` needs `n` = 1", "`smoothing` > 0 needs `method='rk4'`"]
+        params = check_value(tuple(getattr(self, name) for name in _PARAMS), ok, messages)
+        return eqx.tree_at(lambda m: tuple(getattr(m, name) for name in _PARAMS), self, params)
 
     def init(self, v0: ScalarLike = 0.0, z0: ScalarLike = 0.0) -> Float[Array, "2"]:
         """The state `[v_prev, z]`; by default relaxed ($z = 0$) with the input at 0.
@@ -250,8 +296,8 @@ class BoucWen(AbstractHysteresis):
         return jnp.stack([check_scalar(v0, "v0", dtype), check_scalar(z0, "z0", dtype)])
 
     def z_max(self) -> Float[Array, ""]:
-        r"""The bound $(A/(\beta+\gamma))^{1/n}$ on $|z|$ (when $A > 0$, $\beta+\gamma>0$,
-        $\beta\ge|\gamma|$)."""
+        r"""The bound $(A/(\beta+\gamma))^{1/n}$ on $|z|$ (when $A > 0$, $\beta+\gamma>0$, $\beta \ge 0$,
+        from $|z_0| \le z_{\max}$; see the class docstring)."""
         n = self.n if self.method == "rk4" else jnp.ones_like(self.n)
         return (self.A / (self.beta + self.gamma)) ** (1 / n)
 
@@ -302,7 +348,7 @@ class BoucWen(AbstractHysteresis):
 
         **Arguments:**
 
-        - `signal`: 1-D input samples, shape `(time,)`.
+        - `signal`: 1-D real, finite input samples, shape `(time,)`.
         - `state`: the state to start from, e.g. the final state of an earlier call. Default:
           `self.init()`.
 
@@ -311,7 +357,7 @@ class BoucWen(AbstractHysteresis):
         m = self.substeps
         if self.method != "rk4" or m == 1:
             return super().scan(signal, state)
-        _, signal, state = self._prepare(signal, state)
+        op, signal, state = self._prepare(signal, state)
         dtype = signal.dtype
         if state.shape != (2,):
             raise PiezojaxValueError(
@@ -321,5 +367,6 @@ class BoucWen(AbstractHysteresis):
         frac = jnp.arange(1, m, dtype=dtype) / m
         inner = prev[:, None] + frac[None, :] * (signal - prev)[:, None]
         fine = jnp.concatenate([inner, signal[:, None]], axis=1).reshape(-1)
-        final, y = AbstractHysteresis.scan(dataclasses.replace(self, substeps=1), fine, state)
+        # one sub-step per scan iteration, with the checked (and cast) operator of `_prepare`
+        final, y = jax.lax.scan(lambda c, v: op._step(c, v, 1), state, fine, unroll=op._unroll())
         return final, y[m - 1 :: m]

@@ -2,13 +2,18 @@ r"""The Maxwell-slip operator: elasto-slide elements in parallel (paper 003 §3.
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import PiezojaxValueError, check_vector, concrete_or_none
+from .._checks import PiezojaxValueError, check_positive, check_vector
 from .._custom_types import ScalarLike, VectorLike
 from .base import AbstractHysteresis
-from .play import check_smoothing, error_if_bad_smoothing, param_dtype, run_exact_or_smooth, stop_update
+from .play import (
+    check_smoothing,
+    error_if_bad_smoothing,
+    param_dtype,
+    run_exact_or_smooth,
+    stop_update,
+)
 
 
 class MaxwellSlip(AbstractHysteresis):
@@ -38,8 +43,8 @@ class MaxwellSlip(AbstractHysteresis):
 
     **Arguments:**
 
-    - `stiffness`: $k_i > 0$, shape `(n,)`.
-    - `breakaway`: $f_i \geq 0$, shape `(n,)`, any order.
+    - `stiffness`: $k_i > 0$ (finite), shape `(n,)`.
+    - `breakaway`: $f_i \geq 0$ (finite), shape `(n,)`, any order.
     - `smoothing`: relative smoothing $s \geq 0$ (array field); 0 = exact.
 
     **Returns:** called on a signal of shape `(time,)`, the total force (or $V_H$), shape `(time,)`.
@@ -63,11 +68,8 @@ class MaxwellSlip(AbstractHysteresis):
                 f"`stiffness` and `breakaway` must have the same shape, got {tuple(self.stiffness.shape)} and "
                 f"{tuple(self.breakaway.shape)}"
             )
-        k, f = concrete_or_none(self.stiffness), concrete_or_none(self.breakaway)
-        if k is not None and not np.all(np.isfinite(k) & (k > 0)):
-            raise PiezojaxValueError(f"`stiffness` must be finite and > 0, got {k}")
-        if f is not None and not np.all(np.isfinite(f) & (f >= 0)):
-            raise PiezojaxValueError(f"`breakaway` must be finite and >= 0, got {f}")
+        self.stiffness = check_positive(self.stiffness, "stiffness")
+        self.breakaway = check_positive(self.breakaway, "breakaway", allow_zero=True)
         self.smoothing = check_smoothing(smoothing, dtype)
 
     @classmethod
@@ -86,9 +88,7 @@ class MaxwellSlip(AbstractHysteresis):
         """
         dtype = param_dtype(capacitances, breakaway_voltages, smoothing)
         c = check_vector(capacitances, "capacitances", dtype)
-        value = concrete_or_none(c)
-        if value is not None and not np.all(np.isfinite(value) & (value > 0)):
-            raise PiezojaxValueError(f"`capacitances` must be finite and > 0, got {value}")
+        c = check_positive(c, "capacitances")
         return cls(1 / c, breakaway_voltages, smoothing)
 
     @property
@@ -97,12 +97,7 @@ class MaxwellSlip(AbstractHysteresis):
         return self.breakaway / self.stiffness
 
     def check(self) -> "MaxwellSlip":
-        k = eqx.error_if(
-            self.stiffness, ~jnp.all(jnp.isfinite(self.stiffness) & (self.stiffness > 0)), "`stiffness` must be > 0"
-        )
-        f = eqx.error_if(
-            self.breakaway, ~jnp.all(jnp.isfinite(self.breakaway) & (self.breakaway >= 0)), "`breakaway` must be >= 0"
-        )
+        k, f = check_positive(self.stiffness, "stiffness"), check_positive(self.breakaway, "breakaway", allow_zero=True)
         return eqx.tree_at(
             lambda m: (m.stiffness, m.breakaway, m.smoothing), self, (k, f, error_if_bad_smoothing(self.smoothing))
         )

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, as_float_array, concrete_or_none
+from .._checks import PiezojaxValueError, as_float_array, check_positive, check_value, concrete_or_none
 from .._custom_types import ScalarLike
 from .base import AbstractHysteresis
 
@@ -374,8 +374,9 @@ def _stop_scan_jvp(exact, primals, tangents):
 
 
 def param_dtype(*xs):
-    """The floating dtype of the array-valued arguments (Python scalars and lists follow them)."""
-    dtypes = [np.dtype(x.dtype) for x in xs if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.inexact)]
+    """The floating dtype of the array-valued arguments (Python scalars and lists follow them; complex arguments are
+    left to `as_float_array`, which rejects them naming the argument)."""
+    dtypes = [np.dtype(x.dtype) for x in xs if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
     if not dtypes:
         return jnp.zeros(()).dtype
     return jax.dtypes.canonicalize_dtype(np.result_type(*dtypes))
@@ -392,34 +393,20 @@ def check_thresholds_shape(x: ArrayLike, name: str, dtype, allow_scalar: bool) -
 
 
 def check_smoothing(smoothing: ScalarLike, dtype) -> Array:
+    """Validate the `smoothing` argument: a real scalar, finite and >= 0 (see `error_if_bad_smoothing`)."""
     s = as_float_array(smoothing, "smoothing", dtype)
     if s.ndim != 0:
         raise PiezojaxValueError(f"`smoothing` must be a scalar, got shape {tuple(s.shape)}")
-    value = concrete_or_none(s)
-    if value is not None and not (np.isfinite(value) and value >= 0):
-        raise PiezojaxValueError(f"`smoothing` must be finite and >= 0 (0 = exact operator), got {value}")
-    return s
+    return error_if_bad_smoothing(s)
 
 
 def error_if_bad_smoothing(smoothing: Array) -> Array:
-    """Check `smoothing`: in Python when concrete (so it stays concrete for `stop_update`), else `eqx.error_if`."""
-    value = concrete_or_none(smoothing)
-    if value is not None:
-        if not (np.isfinite(value) and value >= 0):
-            raise PiezojaxValueError(f"`smoothing` must be finite and >= 0 (0 = exact operator), got {value}")
-        return smoothing
-    bad = ~(jnp.isfinite(smoothing) & (smoothing >= 0))
-    return eqx.error_if(smoothing, bad, "`smoothing` must be finite and >= 0 (0 = exact operator)")
-
-
-def check_nonnegative(x: Array, name: str) -> None:
-    value = concrete_or_none(x)
-    if value is not None and not np.all(np.isfinite(value) & (value >= 0)):
-        raise PiezojaxValueError(f"`{name}` must be finite and >= 0, got {value}")
-
-
-def error_if_negative(x: Array, name: str) -> Array:
-    return eqx.error_if(x, ~jnp.all(jnp.isfinite(x) & (x >= 0)), f"`{name}` must be finite and >= 0")
+    """Check `smoothing` >= 0 and finite (`check_value`: a concrete value stays concrete for `stop_update`)."""
+    return check_value(
+        smoothing,
+        lambda s: jnp.isfinite(s) & (s >= 0),
+        "`smoothing` must be finite and >= 0 (0 = exact operator)",
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -437,7 +424,7 @@ class _AbstractStopCell(AbstractHysteresis):
         return eqx.tree_at(
             lambda m: (m.thresholds, m.smoothing),
             self,
-            (error_if_negative(self.thresholds, "thresholds"), error_if_bad_smoothing(self.smoothing)),
+            (check_positive(self.thresholds, "thresholds", allow_zero=True), error_if_bad_smoothing(self.smoothing)),
         )
 
     def init(self) -> tuple[Array, Array]:
@@ -497,8 +484,8 @@ class PlayOperator(_AbstractStopCell):
 
     def __init__(self, thresholds: ArrayLike, smoothing: ScalarLike = 0.0):
         dtype = param_dtype(thresholds, smoothing)
-        self.thresholds = check_thresholds_shape(thresholds, "thresholds", dtype, allow_scalar=True)
-        check_nonnegative(self.thresholds, "thresholds")
+        arr = check_thresholds_shape(thresholds, "thresholds", dtype, allow_scalar=True)
+        self.thresholds = check_positive(arr, "thresholds", allow_zero=True)
         self.smoothing = check_smoothing(smoothing, dtype)
 
     def _output(self, v, z):
@@ -531,8 +518,8 @@ class StopOperator(_AbstractStopCell):
 
     def __init__(self, thresholds: ArrayLike, smoothing: ScalarLike = 0.0):
         dtype = param_dtype(thresholds, smoothing)
-        self.thresholds = check_thresholds_shape(thresholds, "thresholds", dtype, allow_scalar=True)
-        check_nonnegative(self.thresholds, "thresholds")
+        arr = check_thresholds_shape(thresholds, "thresholds", dtype, allow_scalar=True)
+        self.thresholds = check_positive(arr, "thresholds", allow_zero=True)
         self.smoothing = check_smoothing(smoothing, dtype)
 
     def _output(self, v, z):

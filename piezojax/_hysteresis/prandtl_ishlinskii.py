@@ -5,10 +5,16 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, as_float_array, check_scalar, check_vector, concrete_or_none
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_finite,
+    check_scalar,
+    check_value,
+    check_vector,
+)
 from .._custom_types import ScalarLike, VectorLike
 from .play import (
     _AbstractStopCell,
@@ -24,12 +30,12 @@ from .play import (
 )
 
 
-def _thresholds_error(thresholds: Array) -> Array:
-    """True where `thresholds` is not finite, non-negative and strictly ascending."""
-    bad = ~jnp.all(jnp.isfinite(thresholds) & (thresholds >= 0))
+def _thresholds_ok(thresholds: Array) -> Array:
+    """True if `thresholds` is finite, non-negative and strictly ascending."""
+    ok = jnp.all(jnp.isfinite(thresholds) & (thresholds >= 0))
     if thresholds.shape[0] > 1:
-        bad = bad | ~jnp.all(jnp.diff(thresholds) > 0)
-    return bad
+        ok = ok & jnp.all(jnp.diff(thresholds) > 0)
+    return ok
 
 
 _THRESHOLDS_MESSAGE = "`thresholds` must be finite, >= 0 and strictly ascending"
@@ -118,10 +124,13 @@ class PrandtlIshlinskii(_AbstractStopCell):
 
     **Arguments:**
 
-    - `weights`: $w_i$, shape `(n,)`.
+    - `weights`: $w_i$, shape `(n,)`, finite.
     - `thresholds`: $r_i$, shape `(n,)`, finite, non-negative and strictly ascending.
-    - `w0`: the weight of the linear term (a play with $r = 0$), scalar.
+    - `w0`: the weight of the linear term (a play with $r = 0$), a finite scalar.
     - `smoothing`: relative smoothing $s \geq 0$ (array field); 0 = exact.
+
+    Invalid arguments (complex or boolean, NaN/inf, out of range) raise `PiezojaxValueError` naming the argument, or
+    fail under `jit` with `eqx.error_if`; see `AbstractHysteresis`.
 
     **Returns:** called on a signal of shape `(time,)`, the output of shape `(time,)`.
 
@@ -146,22 +155,27 @@ class PrandtlIshlinskii(_AbstractStopCell):
     ):
         dtype = param_dtype(weights, thresholds, w0, smoothing)
         self.weights = check_vector(weights, "weights", dtype)
-        self.thresholds = check_vector(thresholds, "thresholds", dtype)
-        if self.weights.shape != self.thresholds.shape:
+        thresholds = check_vector(thresholds, "thresholds", dtype, finite=False)
+        if self.weights.shape != thresholds.shape:
             raise PiezojaxValueError(
                 f"`weights` and `thresholds` must have the same shape, got {tuple(self.weights.shape)} and "
-                f"{tuple(self.thresholds.shape)}"
+                f"{tuple(thresholds.shape)}"
             )
-        value = concrete_or_none(self.thresholds)
-        if value is not None and bool(_thresholds_error(jnp.asarray(value))):
-            raise PiezojaxValueError(f"{_THRESHOLDS_MESSAGE}, got {value}")
+        self.thresholds = check_value(thresholds, _thresholds_ok, _THRESHOLDS_MESSAGE)
         self.w0 = check_scalar(w0, "w0", dtype)
         self.smoothing = check_smoothing(smoothing, dtype)
 
     def check(self) -> "PrandtlIshlinskii":
-        thresholds = eqx.error_if(self.thresholds, _thresholds_error(self.thresholds), _THRESHOLDS_MESSAGE)
+        # outside the scan: one check per parameter array, also for leaves replaced after __init__ (`eqx.tree_at`)
         return eqx.tree_at(
-            lambda m: (m.thresholds, m.smoothing), self, (thresholds, error_if_bad_smoothing(self.smoothing))
+            lambda m: (m.weights, m.thresholds, m.w0, m.smoothing),
+            self,
+            (
+                check_finite(self.weights, "weights"),
+                check_value(self.thresholds, _thresholds_ok, _THRESHOLDS_MESSAGE),
+                check_finite(self.w0, "w0"),
+                error_if_bad_smoothing(self.smoothing),
+            ),
         )
 
     def _output(self, v, z):
@@ -215,22 +229,16 @@ class PrandtlIshlinskii(_AbstractStopCell):
         slopes = w0 + jnp.cumsum(w)  # a_1 .. a_n
         slopes_prev = jnp.concatenate([w0[None], slopes[:-1]])  # a_0 .. a_{n-1}
 
-        for value, message in (
-            (concrete_or_none(s), "`smoothing` must be 0 for the analytic inverse (it inverts the exact operator)"),
-            (concrete_or_none(w0), "`w0` must be > 0 for the inverse to exist (strictly increasing loading curve)"),
-            (
-                concrete_or_none(slopes),
-                "`weights`: every partial sum w0 + w_1 + ... + w_j must be > 0 for the inverse to exist",
-            ),
-        ):
-            if value is not None:
-                ok = np.all(value == 0) if message.startswith("`smoothing`") else np.all(value > 0)
-                if not ok:
-                    raise PiezojaxValueError(f"{message}; got {value}")
-        s = eqx.error_if(s, s != 0, "`smoothing` must be 0 for the analytic inverse (it inverts the exact operator)")
-        w0 = eqx.error_if(w0, ~(w0 > 0), "`w0` must be > 0 for the inverse to exist")
-        slopes = eqx.error_if(
-            slopes, ~jnp.all(slopes > 0), "`weights`: every partial sum w0 + w_1 + ... + w_j must be > 0"
+        s = check_value(
+            s, lambda x: x == 0, "`smoothing` must be 0 for the analytic inverse (it inverts the exact operator)"
+        )
+        w0 = check_value(
+            w0, lambda x: x > 0, "`w0` must be > 0 for the inverse to exist (strictly increasing loading curve)"
+        )
+        slopes = check_value(
+            slopes,
+            lambda x: jnp.all(x > 0),
+            "`weights`: every partial sum w0 + w_1 + ... + w_j must be > 0 for the inverse to exist",
         )
 
         r_prev = jnp.concatenate([jnp.zeros((1,), r.dtype), r[:-1]])

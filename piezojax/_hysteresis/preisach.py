@@ -6,10 +6,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_scalar, check_vector, concrete_or_none
+from .._checks import PiezojaxValueError, check_scalar, check_value, check_vector, concrete_or_none
 from .._custom_types import ScalarLike, VectorLike
 from .base import AbstractHysteresis
 from .play import param_dtype, play_step
+
+_ORDER_MESSAGE = "`alpha` must be >= `beta` for every relay"
+
+
+def _ordered(p: tuple[Array, Array]) -> Array:
+    alpha, beta = p
+    return jnp.all(alpha >= beta)
 
 
 class Preisach(AbstractHysteresis):
@@ -53,10 +60,10 @@ class Preisach(AbstractHysteresis):
 
     **Arguments:**
 
-    - `alpha`, `beta`: the switching-up and switching-down inputs of the $N$ relays, 1-D, with
-      `alpha >= beta`.
-    - `mu`: the weights of the relays, 1-D of length $N$.
-    - `offset`: $c$, a scalar added to the output, default 0.
+    - `alpha`, `beta`: the switching-up and switching-down inputs of the $N$ relays, 1-D, finite,
+      with `alpha >= beta`.
+    - `mu`: the weights of the relays, 1-D of length $N$, finite.
+    - `offset`: $c$, a finite scalar added to the output, default 0.
     - `smoothing`: $s \ge 0$ (0 = exact), the switching width in input units.
 
     **Returns:** the operator; called on a signal of shape `(time,)` it returns the output, shape
@@ -83,21 +90,21 @@ class Preisach(AbstractHysteresis):
         smoothing: ScalarLike = 0.0,
     ):
         dtype = param_dtype(alpha, beta, mu, offset, smoothing)
-        self.alpha = check_vector(alpha, "alpha", dtype)
-        self.beta = check_vector(beta, "beta", dtype)
+        alpha = check_vector(alpha, "alpha", dtype)
+        beta = check_vector(beta, "beta", dtype)
         self.mu = check_vector(mu, "mu", dtype)
         self.offset = check_scalar(offset, "offset", dtype)
-        self.smoothing = check_scalar(smoothing, "smoothing", dtype)
-        n = self.alpha.shape[0]
-        for name, x in (("beta", self.beta), ("mu", self.mu)):
+        self.smoothing = check_value(
+            check_scalar(smoothing, "smoothing", dtype), lambda s: s >= 0, "`smoothing` must be finite and >= 0"
+        )
+        n = alpha.shape[0]
+        for name, x in (("beta", beta), ("mu", self.mu)):
             if x.shape[0] != n:
                 raise PiezojaxValueError(
                     f"`{name}` must have the same length as `alpha` ({n}), got {x.shape[0]}"
                 )
-        a, b = concrete_or_none(self.alpha), concrete_or_none(self.beta)
+        a, b = concrete_or_none(alpha), concrete_or_none(beta)
         if a is not None and b is not None:
-            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-                raise PiezojaxValueError("`alpha` and `beta` must be finite")
             bad = np.nonzero(a < b)[0]
             if bad.size:
                 i = int(bad[0])
@@ -105,11 +112,7 @@ class Preisach(AbstractHysteresis):
                     f"`alpha` must be >= `beta` for every relay; "
                     f"relay {i} has alpha={a[i]} < beta={b[i]}"
                 )
-        s = concrete_or_none(self.smoothing)
-        if s is not None and not (np.isfinite(s) and s >= 0):
-            raise PiezojaxValueError(
-                f"`smoothing` must be finite and >= 0 (0 = exact), got {float(s)}"
-            )
+        self.alpha, self.beta = check_value((alpha, beta), _ordered, _ORDER_MESSAGE)
 
     @classmethod
     def uniform(
@@ -163,15 +166,17 @@ class Preisach(AbstractHysteresis):
         return cls(jnp.asarray(x[i], dtype), jnp.asarray(x[j], dtype), mu, offset, smoothing)
 
     def check(self) -> "Preisach":
-        alpha = eqx.error_if(
-            self.alpha, jnp.any(self.alpha < self.beta), "`alpha` must be >= `beta` for every relay"
-        )
-        smoothing = eqx.error_if(
-            self.smoothing,
-            ~(jnp.isfinite(self.smoothing) & (self.smoothing >= 0)),
-            "`smoothing` must be >= 0",
-        )
-        return eqx.tree_at(lambda p: (p.alpha, p.smoothing), self, (alpha, smoothing))
+        # One check for all parameters (one `branched_error_if` when traced), outside the scan; it also covers
+        # parameters replaced after __init__ (`eqx.tree_at`).
+        def ok(p):
+            alpha, beta, mu, offset, smoothing = p
+            finite = [jnp.all(jnp.isfinite(x)) for x in p]
+            return jnp.stack(finite + [_ordered((alpha, beta)), smoothing >= 0])
+
+        messages = [f"`{name}` contains NaN or infinite values" for name in ("alpha", "beta", "mu", "offset")]
+        messages += ["`smoothing` must be finite and >= 0", _ORDER_MESSAGE, "`smoothing` must be finite and >= 0"]
+        params = check_value((self.alpha, self.beta, self.mu, self.offset, self.smoothing), ok, messages)
+        return eqx.tree_at(lambda p: (p.alpha, p.beta, p.mu, p.offset, p.smoothing), self, params)
 
     @property
     def num_relays(self) -> int:

@@ -24,6 +24,11 @@ class AbstractLinearSystem(eqx.Module):
 
     Sampled inputs are held between samples by `hold="zoh"` (constant, as a DAC does) or `"foh"` (linear,
     as `scipy.signal.lsim` does by default). The discretisation is exact for that input (matrix exponential).
+
+    Checks: constructors reject complex or boolean coefficients and NaN/inf values with a `PiezojaxValueError`
+    naming the argument (`eqx.error_if` for traced values); the input `u` must be real, 1-D and finite; the
+    realisation is checked again whenever it is built (`state_space()`), so coefficients replaced after
+    construction (`eqx.tree_at`) are caught too.
     """
 
     @abc.abstractmethod
@@ -94,7 +99,7 @@ class AbstractLinearSystem(eqx.Module):
 
         **Arguments:**
 
-        - `u`: input samples, shape `(time,)` (use `jax.vmap` for a batch).
+        - `u`: real, finite input samples, shape `(time,)` (use `jax.vmap` for a batch).
         - `dt`: sampling step in s (> 0).
         - `x0`: state of `state_space()` at the first sample, shape `(n,)`; default zeros (system at rest).
         - `hold`: `"zoh"` (default) or `"foh"` (matches `scipy.signal.lsim`).
@@ -110,7 +115,7 @@ class AbstractLinearSystem(eqx.Module):
         dtype = module_float_dtype(self, u)
         u = check_signal(u, "u", dtype)
         d = cast_module(self, dtype).discretise(dt, hold)
-        return d.scan(u, d.init_state(x0, u[0]))[1]
+        return d.scan(u, None if x0 is None else d.init_state(x0, u[0]))[1]
 
     def __call__(self, u: SignalLike, dt: ArrayLike, x0: ArrayLike | None = None, hold: str = "zoh") -> Signal:
         """Same as `simulate`."""

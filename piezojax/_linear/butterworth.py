@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from .._checks import PiezojaxValueError, as_float_array, check_scalar, concrete_or_none
+from .._checks import PiezojaxValueError, check_scalar, check_value
 from .stable import StableTransferFunction
 
 
@@ -34,10 +34,11 @@ def butterworth(order: int, cutoff: ArrayLike) -> StableTransferFunction:
     """
     if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
         raise PiezojaxValueError(f"`order` must be an integer >= 1, got {order!r}")
-    cutoff = check_scalar(as_float_array(cutoff, "cutoff"), "cutoff")
-    value = concrete_or_none(cutoff)
-    if value is not None and not (np.isfinite(value) and value > 0):
-        raise PiezojaxValueError(f"`cutoff` must be a positive angular frequency (rad/s), got {value}")
+    cutoff = check_value(
+        check_scalar(cutoff, "cutoff", finite=False),
+        lambda c: jnp.isfinite(c) & (c > 0),
+        "`cutoff` must be a finite, positive angular frequency (rad/s)",
+    )
     dtype = cutoff.dtype
     n2 = order // 2
     zeta = jnp.asarray([math.sin(math.pi * (2 * k - 1) / (2 * order)) for k in range(1, n2 + 1)], dtype)

@@ -7,7 +7,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_finite, check_signal, check_vector, concrete_or_none
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_finite,
+    check_signal,
+    check_step,
+    check_value,
+    check_vector,
+    common_float_dtype,
+)
 from .._custom_types import Signal, SignalLike
 
 _HOLDS = ("zoh", "foh")
@@ -57,31 +66,6 @@ def check_hold(hold: str) -> str:
     return hold
 
 
-def check_dt(dt: ArrayLike, dtype) -> Array:
-    """`dt` as a positive finite scalar of `dtype`: a ValueError if concrete, `eqx.error_if` if traced."""
-    try:
-        arr = jnp.asarray(dt)
-    except (TypeError, ValueError) as e:
-        raise PiezojaxValueError(f"`dt` must be a positive scalar, got {type(dt).__name__}") from e
-    if arr.ndim != 0:
-        raise PiezojaxValueError(
-            f"`dt` must be a scalar sampling step, got shape {tuple(arr.shape)}; a signal is sampled uniformly"
-        )
-    arr = arr.astype(dtype)
-    value = concrete_or_none(arr)
-    if value is not None:
-        if not (np_isfinite(value) and value > 0):
-            raise PiezojaxValueError(f"`dt` must be a positive finite sampling step, got {value}")
-        return arr
-    return eqx.error_if(arr, ~(jnp.isfinite(arr) & (arr > 0)), "`dt` must be a positive finite sampling step")
-
-
-def np_isfinite(x) -> bool:
-    import numpy as np
-
-    return bool(np.all(np.isfinite(x)))
-
-
 def time_step(t: SignalLike, rtol: float = 1e-6) -> Array:
     r"""The sampling step of a uniform, increasing time vector `t`: $dt = (t_{N-1} - t_0)/(N-1)$.
 
@@ -123,7 +107,9 @@ class DiscreteStateSpace(eqx.Module):
     update is applied as $\xi + (\delta\,\xi + B_d u)$, which keeps slow poles, $A_d \approx 1 - 10^{-8}$, exact);
     `gamma1 (n,)` the FOH state shift $\Gamma_1$ (zeros for ZOH); `dt`; `hold` (static).
 
-    Build it with `AbstractLinearSystem.discretise` or `discretise_state_space`.
+    Build it with `AbstractLinearSystem.discretise` or `discretise_state_space`; the constructor checks the shapes,
+    that every matrix is real and finite, and that `dt` is a finite step > 0 (`PiezojaxValueError` naming the field,
+    or `eqx.error_if` under `jit`).
     """
 
     Ad: Float[Array, "n n"]
@@ -134,6 +120,25 @@ class DiscreteStateSpace(eqx.Module):
     gamma1: Float[Array, " n"]
     dt: Float[Array, ""]
     hold: str = eqx.field(static=True)
+
+    def __init__(self, Ad, Bd, Cd, Dd, delta, gamma1, dt, hold: str):
+        self.hold = check_hold(hold)
+        fields = dict(Ad=Ad, Bd=Bd, Cd=Cd, Dd=Dd, delta=delta, gamma1=gamma1)
+        dtype = common_float_dtype(*fields.values())
+        arrays = {name: as_float_array(x, name, dtype) for name, x in fields.items()}
+        n = arrays["Ad"].shape[0] if arrays["Ad"].ndim == 2 else -1
+        shapes = dict(Ad=(n, n), Bd=(n,), Cd=(n,), Dd=(), delta=(n, n), gamma1=(n,))
+        for name, shape in shapes.items():
+            if arrays[name].shape != shape:
+                raise PiezojaxValueError(f"`{name}` must have shape {shape}, got {tuple(arrays[name].shape)}")
+        # one check for all the matrices (one `branched_error_if` when traced: this runs at every discretisation)
+        checked = check_value(
+            tuple(arrays.values()),
+            lambda xs: jnp.stack([jnp.all(jnp.isfinite(x)) for x in xs]),
+            [f"`{name}` contains NaN or infinite values" for name in arrays],
+        )
+        self.Ad, self.Bd, self.Cd, self.Dd, self.delta, self.gamma1 = checked
+        self.dt = check_step(dt, "dt", dtype)
 
     @property
     def order(self) -> int:
@@ -149,7 +154,6 @@ class DiscreteStateSpace(eqx.Module):
             x0 = check_vector(x0, "x0", dtype, allow_empty=True)
             if x0.shape != (n,):
                 raise PiezojaxValueError(f"`x0` must have shape ({n},) (the system order), got {tuple(x0.shape)}")
-            x0 = eqx.error_if(x0, ~jnp.all(jnp.isfinite(x0)), "`x0` contains NaN or infinite values")
         return x0 - self.gamma1 * jnp.asarray(u0, dtype)
 
     def scan(self, u: SignalLike, state: ArrayLike | None = None) -> tuple[Float[Array, " n"], Signal]:
@@ -225,7 +229,7 @@ def discretise_state_space(
     check_hold(hold)
     A, B, C, D = check_realisation(A, B, C, D)
     dtype = A.dtype
-    dt = check_dt(dt, dtype)
+    dt = check_step(dt, "dt", dtype)
     n = A.shape[0]
     eye = jnp.eye(n, dtype=dtype)
     zero = jnp.zeros((n, n), dtype)
@@ -253,9 +257,7 @@ def discretise_state_space(
 
 
 def check_realisation(A, B, C, D) -> tuple[Array, Array, Array, Array]:
-    """Validate shapes of a SISO realisation and cast it to a common float dtype (NaN checked with error_if)."""
-    from .._checks import as_float_array, common_float_dtype
-
+    """Validate shapes of a SISO realisation, cast it to a common float dtype, check it is finite."""
     A, B, C, D = (as_float_array(x, name) for x, name in ((A, "A"), (B, "B"), (C, "C"), (D, "D")))
     dtype = common_float_dtype(A, B, C, D)
     A = as_float_array(A, "A", dtype)
@@ -275,12 +277,5 @@ def check_realisation(A, B, C, D) -> tuple[Array, Array, Array, Array]:
         raise PiezojaxValueError(f"`C` must have shape ({n},) to match `A` (single output), got {tuple(C.shape)}")
     if D.shape != ():
         raise PiezojaxValueError(f"`D` must be a scalar (single input, single output), got shape {tuple(D.shape)}")
-    out = []
-    for name, x in (("A", A), ("B", B), ("C", C), ("D", D)):
-        value = concrete_or_none(x)
-        if value is None:
-            x = check_finite(x, name)
-        elif not np_isfinite(value):
-            raise PiezojaxValueError(f"`{name}` contains NaN or infinite values")
-        out.append(x)
+    out = [check_finite(x, name) for name, x in (("A", A), ("B", B), ("C", C), ("D", D))]
     return tuple(out)

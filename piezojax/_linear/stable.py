@@ -9,8 +9,8 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import (
     PiezojaxValueError,
     as_float_array,
-    check_finite,
     check_scalar,
+    check_value,
     check_vector,
     common_float_dtype,
     concrete_or_none,
@@ -102,7 +102,7 @@ class StableTransferFunction(AbstractLinearSystem):
             args["num"] = num
         raw = {k: as_float_array(v, k) for k, v in args.items()}
         dtype = common_float_dtype(*raw.values())
-        gain = _finite(check_scalar(raw["gain"], "gain", dtype), "gain")
+        gain = check_scalar(raw["gain"], "gain", dtype)
         vec = {k: check_vector(raw[k], k, dtype, allow_empty=True) for k in args if k not in ("gain", "num")}
         for a, b in (("omega", "zeta"), ("zero_omega", "zero_zeta")):
             if vec[a].shape != vec[b].shape:
@@ -125,9 +125,9 @@ class StableTransferFunction(AbstractLinearSystem):
                 num = num[min(lead, num.shape[0] - n - 1) :]
             if num.shape[0] > n + 1:
                 raise PiezojaxValueError(f"`num` has degree {num.shape[0] - 1} but the system has {n} poles: improper")
-            num = _finite(num, "num")
             if dc_normalised:
-                num = _nonzero(num, num[-1], "`num` must have a nonzero constant term when dc_normalised=True")
+                message = "`num` must have a nonzero constant term when dc_normalised=True"
+                num = check_value(num, lambda a: a[-1] != 0, message)
         if m2 > n2:
             raise PiezojaxValueError(
                 f"`zero_omega` has {m2} complex zero pairs but there are only {n2} pole pairs (`omega`); "
@@ -143,10 +143,10 @@ class StableTransferFunction(AbstractLinearSystem):
         self.zeta = _check_sign(vec["zeta"], "zeta", positive=True)
         self.poles = _check_sign(vec["poles"], "poles", positive=False)
         self.zero_omega = _check_sign(vec["zero_omega"], "zero_omega", positive=True)
-        self.zero_zeta = _finite(vec["zero_zeta"], "zero_zeta")
-        zeros = _finite(vec["zeros"], "zeros")
+        self.zero_zeta = vec["zero_zeta"]
+        zeros = vec["zeros"]
         if dc_normalised:
-            zeros = _nonzero(zeros, jnp.prod(zeros), "`zeros` must be nonzero when dc_normalised=True")
+            zeros = check_value(zeros, lambda a: jnp.all(a != 0), "`zeros` must be nonzero when dc_normalised=True")
         self.zeros = zeros
         self.num = num
         self.dc_normalised = bool(dc_normalised)
@@ -181,30 +181,36 @@ class StableTransferFunction(AbstractLinearSystem):
             out.append(("pair", (w, z), jnp.stack([one, 2 * z * w, w * w]), w * w, zero_polys.get(("pair", i))))
         return out
 
-    def _checked(self):
-        """`(omega, zeta, poles)`, with one combined `eqx.branched_error_if` when traced (one check to compile)."""
-        omega, zeta, poles = self.omega, self.zeta, self.poles
-        if all(concrete_or_none(x) is not None for x in (omega, zeta, poles)):
-            return (
-                _check_sign(omega, "omega", positive=True),
-                _check_sign(zeta, "zeta", positive=True),
-                _check_sign(poles, "poles", positive=False),
+    def _checked(self) -> "StableTransferFunction":
+        """`self` with one value check of every parameter attached (stable poles, finite zeros, gain and `num`): one
+        `check_value`, i.e. one `eqx.branched_error_if` to compile when traced. Also catches values replaced after
+        `__init__` (`eqx.tree_at`)."""
+        names = ("omega", "zeta", "poles", "gain", "zeros", "zero_omega", "zero_zeta")
+        names += ("num",) if self.num is not None else ()
+
+        def ok(p):
+            omega, zeta, poles, *rest = p
+            finite = [jnp.all(jnp.isfinite(x)) for x in p]
+            signs = [jnp.all(omega > 0), jnp.all(zeta > 0), jnp.all(poles < 0), jnp.all(p[5] > 0)]
+            return jnp.stack(
+                [finite[0] & signs[0], finite[1] & signs[1], finite[2] & signs[2]]
+                + finite[3:5]
+                + [finite[5] & signs[3]]
+                + finite[6:]
             )
-        bad = jnp.stack(
-            [
-                jnp.any(~jnp.isfinite(omega) | (omega <= 0)),
-                jnp.any(~jnp.isfinite(zeta) | (zeta <= 0)),
-                jnp.any(~jnp.isfinite(poles) | (poles >= 0)),
-            ]
-        )
-        msgs = [
+
+        messages = [
             "`omega` must be finite and positive (stable)",
             "`zeta` must be finite and positive (stable)",
             "`poles` must be finite and negative (stable)",
-        ]
-        packed = eqx.branched_error_if(jnp.concatenate([omega, zeta, poles]), jnp.any(bad), jnp.argmax(bad), msgs)
-        n2 = omega.shape[0]
-        return packed[:n2], packed[n2 : 2 * n2], packed[2 * n2 :]
+            "`gain` contains NaN or infinite values",
+            "`zeros` contains NaN or infinite values",
+            "`zero_omega` must be finite and positive",
+            "`zero_zeta` contains NaN or infinite values",
+            "`num` contains NaN or infinite values",
+        ][: len(names)]
+        params = check_value(tuple(getattr(self, n) for n in names), ok, messages)
+        return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), self, params)
 
     # -- polynomials -----------------------------------------------------------------------------------------
 
@@ -242,8 +248,11 @@ class StableTransferFunction(AbstractLinearSystem):
     # -- realisation -----------------------------------------------------------------------------------------
 
     def state_space(self):
+        return self._checked()._state_space()
+
+    def _state_space(self):
         dtype = self.gain.dtype
-        omega, zeta, poles = self._checked()
+        omega, zeta, poles = self.omega, self.zeta, self.poles
         n = self.order
         sections = self._sections(omega, zeta, poles)
         zero = jnp.zeros((), dtype)
@@ -371,34 +380,10 @@ class StableTransferFunction(AbstractLinearSystem):
 
 
 def _check_sign(x: Array, name: str, positive: bool) -> Array:
-    """Elementwise > 0 (or < 0): a ValueError if concrete, `eqx.error_if` if traced."""
+    """Elementwise > 0 (or < 0) and finite (`check_value`)."""
     what = "positive" if positive else "negative"
-    value = concrete_or_none(x)
-    if value is not None:
-        bad = ~np.isfinite(value) | ((value <= 0) if positive else (value >= 0))
-        if np.any(bad):
-            raise PiezojaxValueError(f"`{name}` must be finite and {what} (stable), got {value.tolist()}")
-        return x
-    bad = ~jnp.isfinite(x) | ((x <= 0) if positive else (x >= 0))
-    return eqx.error_if(x, jnp.any(bad), f"`{name}` must be finite and {what} (stable)")
-
-
-def _finite(x: Array, name: str) -> Array:
-    value = concrete_or_none(x)
-    if value is None:
-        return check_finite(x, name)
-    if not np.all(np.isfinite(value)):
-        raise PiezojaxValueError(f"`{name}` contains NaN or infinite values")
-    return x
-
-
-def _nonzero(x: Array, test: Array, msg: str) -> Array:
-    value = concrete_or_none(test)
-    if value is None:
-        return eqx.error_if(x, test == 0, msg)
-    if value == 0:
-        raise PiezojaxValueError(msg)
-    return x
+    ok = (lambda a: jnp.all(jnp.isfinite(a) & (a > 0))) if positive else (lambda a: jnp.all(jnp.isfinite(a) & (a < 0)))
+    return check_value(x, ok, f"`{name}` must be finite and {what} (stable)")
 
 
 def _pow2_scale(m: Array) -> Array:

@@ -1,6 +1,5 @@
 """A linear system given by transfer-function polynomial coefficients (scipy convention)."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +8,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import (
     PiezojaxValueError,
     as_float_array,
-    check_finite,
+    check_value,
     check_vector,
     common_float_dtype,
     concrete_or_none,
@@ -21,27 +20,18 @@ def normalise_tf(num: ArrayLike, den: ArrayLike) -> tuple[Array, Array]:
     """Validate `num`/`den`, divide both by `den[0]` and left-pad `num` with zeros to the length of `den`."""
     num, den = as_float_array(num, "num"), as_float_array(den, "den")
     dtype = common_float_dtype(num, den)
-    num = check_vector(jnp.atleast_1d(num), "num", dtype)
-    den = check_vector(jnp.atleast_1d(den), "den", dtype)
-    num_c, den_c = concrete_or_none(num), concrete_or_none(den)
+    with jax.ensure_compile_time_eval():  # a concrete argument stays concrete under `jit`
+        num, den = jnp.atleast_1d(num), jnp.atleast_1d(den)
+    num = check_vector(num, "num", dtype)
+    den = check_vector(den, "den", dtype)
+    num_c = concrete_or_none(num)
     if num_c is not None:
-        if not np.all(np.isfinite(num_c)):
-            raise PiezojaxValueError("`num` contains NaN or infinite values")
         # Leading zeros do not change the degree (scipy strips them too).
         nz = np.flatnonzero(num_c)
         lead = int(nz[0]) if nz.size else num_c.shape[0] - 1
         if num_c.shape[0] - lead <= den.shape[0]:
             num = num[max(0, min(lead, num.shape[0] - den.shape[0])) :] if num.shape[0] > den.shape[0] else num
-    else:
-        num = check_finite(num, "num")
-    if den_c is not None:
-        if not np.all(np.isfinite(den_c)):
-            raise PiezojaxValueError("`den` contains NaN or infinite values")
-        if den_c[0] == 0:
-            raise PiezojaxValueError(f"`den` must have a nonzero leading coefficient den[0], got {den_c.tolist()}")
-    else:
-        den = check_finite(den, "den")
-        den = eqx.error_if(den, den[0] == 0, "`den` must have a nonzero leading coefficient den[0]")
+    den = check_value(den, lambda d: d[0] != 0, "`den` must have a nonzero leading coefficient den[0]")
     if num.shape[0] > den.shape[0]:
         raise PiezojaxValueError(
             f"the transfer function must be proper: `num` has degree {num.shape[0] - 1} > "
@@ -66,8 +56,8 @@ class TransferFunction(AbstractLinearSystem):
 
     **Arguments:**
 
-    - `num`: numerator coefficients, 1-D, degree ≤ degree of `den` (leading zeros are ignored).
-    - `den`: denominator coefficients, 1-D, `den[0] != 0`.
+    - `num`: numerator coefficients, 1-D, finite, degree ≤ degree of `den` (leading zeros are ignored).
+    - `den`: denominator coefficients, 1-D, finite, `den[0] != 0`.
 
     ```python
     G = pj.TransferFunction([1.0], [1.0, 2 * 0.1 * 10.0, 100.0])  # 1 / (s^2 + 2 s + 100)
@@ -82,7 +72,16 @@ class TransferFunction(AbstractLinearSystem):
         self.num, self.den = normalise_tf(num, den)
 
     def state_space(self):
-        num, den = self.num, self.den
+        # coefficients replaced after __init__ (`eqx.tree_at`) are checked here, one check for both
+        num, den = check_value(
+            (self.num, self.den),
+            lambda p: jnp.stack([jnp.all(jnp.isfinite(p[0])), jnp.all(jnp.isfinite(p[1])), p[1][0] != 0]),
+            [
+                "`num` contains NaN or infinite values",
+                "`den` contains NaN or infinite values",
+                "`den` must have a nonzero leading coefficient den[0]",
+            ],
+        )
         dtype = den.dtype
         n = den.shape[0] - 1
         D = num[0]

@@ -14,33 +14,22 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from .._checks import (
     PiezojaxValueError,
     as_float_array,
     check_finite,
+    check_step,
+    check_value,
     common_float_dtype,
-    concrete_or_none,
 )
 
 HOLDS = ("zoh", "linear", "periodic")
 
 
-def check_step(dt: ArrayLike, name: str = "dt", dtype=None) -> Array:
-    """Validate a positive scalar time step (ValueError when concrete, `eqx.error_if` when traced)."""
-    arr = as_float_array(dt, name, dtype)
-    if arr.ndim != 0:
-        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(arr.shape)}")
-    val = concrete_or_none(arr)
-    if val is not None and not (np.isfinite(val) and val > 0):
-        raise PiezojaxValueError(f"`{name}` must be positive and finite, got {float(val)}")
-    return eqx.error_if(arr, ~(jnp.isfinite(arr) & (arr > 0)), f"`{name}` must be positive and finite")
-
-
 def check_samples(u: ArrayLike, name: str, dtype=None) -> Array:
-    """Validate sampled input(s): shape `(time,)` or `(time, channels)`, non-empty, finite."""
+    """Validate sampled input(s): real, shape `(time,)` or `(time, channels)`, non-empty, finite."""
     arr = as_float_array(u, name, dtype)
     if arr.ndim not in (1, 2):
         raise PiezojaxValueError(
@@ -60,8 +49,8 @@ class SampledInput(eqx.Module):
 
     **Arguments:**
 
-    - `knots`: increasing knot times, shape `(K + 1,)`.
-    - `coeffs`: polynomial coefficients in $t - \tau_k$, shape `(K, 4, *channels)`.
+    - `knots`: finite, strictly increasing knot times, shape `(K + 1,)`, $K \ge 1$.
+    - `coeffs`: finite polynomial coefficients in $t - \tau_k$, shape `(K, 4, *channels)`.
     - `hold`: the hold that made it (`"zoh"`, `"linear"` or `"periodic"`).
 
     Outside $[\tau_0, \tau_K]$ the first / last piece is extended (`"periodic"`: the signal repeats).
@@ -76,6 +65,25 @@ class SampledInput(eqx.Module):
     coeffs: Array
     hold: str = eqx.field(static=True)
 
+    def __init__(self, knots: ArrayLike, coeffs: ArrayLike, hold: str):
+        if hold not in HOLDS:
+            raise PiezojaxValueError(f"`hold` must be one of {HOLDS}, got {hold!r}")
+        knots, coeffs = as_float_array(knots, "knots"), as_float_array(coeffs, "coeffs")
+        if knots.ndim != 1 or knots.shape[0] < 2:
+            raise PiezojaxValueError(f"`knots` must be 1-D with at least 2 entries, got shape {tuple(knots.shape)}")
+        if coeffs.ndim < 2 or coeffs.shape[:2] != (knots.shape[0] - 1, 4):
+            raise PiezojaxValueError(
+                f"`coeffs` must have shape ({knots.shape[0] - 1}, 4, *channels) for {knots.shape[0]} knots, "
+                f"got {tuple(coeffs.shape)}"
+            )
+
+        def ok(p):
+            return jnp.stack([jnp.all(jnp.isfinite(p[0])) & jnp.all(jnp.diff(p[0]) > 0), jnp.all(jnp.isfinite(p[1]))])
+
+        messages = ["`knots` must be finite and strictly increasing", "`coeffs` contains NaN or infinite values"]
+        self.knots, self.coeffs = check_value((knots, coeffs), ok, messages)
+        self.hold = hold
+
     @classmethod
     def from_samples(cls, u: ArrayLike, dt: ArrayLike, hold: str = "linear", t0: ArrayLike = 0.0,
                      upsample: int = 8) -> "SampledInput":
@@ -89,7 +97,7 @@ class SampledInput(eqx.Module):
         dtype = common_float_dtype(u, dt)
         u = u.astype(dtype)
         dt = check_step(dt, "dt", dtype)
-        t0 = as_float_array(t0, "t0", dtype)
+        t0 = check_finite(as_float_array(t0, "t0", dtype), "t0")
         n = u.shape[0]
         zeros = jnp.zeros_like(u)
         if hold == "zoh":

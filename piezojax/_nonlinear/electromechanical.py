@@ -4,16 +4,16 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import (
     PiezojaxValueError,
     as_float_array,
+    check_positive,
     check_scalar,
+    check_value,
     check_vector,
     common_float_dtype,
-    concrete_or_none,
 )
 from ._input import check_samples, check_step
 
@@ -105,6 +105,8 @@ class ElectromechanicalActuator(eqx.Module):
     - `element_capacitances` (> 0), `breakaway_voltages` (≥ 0): Maxwell-slip elements, shape `(n,)`, n ≥ 0
       (n = 0 or zero breakaway voltages: no hysteresis).
 
+    All real and finite: otherwise a `PiezojaxValueError` naming the argument (`eqx.error_if` under `jit`).
+
     ```python
     act = ElectromechanicalActuator(m=0.01, b=5.0, k=1e5, capacitance=1e-6, t_em=[0.5],
                                     element_capacitances=jnp.full(5, 2e-6), breakaway_voltages=jnp.arange(1., 6.))
@@ -135,25 +137,23 @@ class ElectromechanicalActuator(eqx.Module):
             )
         for name, positive in (("m", True), ("b", False), ("k", False), ("capacitance", True),
                                ("element_capacitances", True), ("breakaway_voltages", False)):
-            val = concrete_or_none(getattr(self, name))
-            if val is None:
-                continue
-            ok = np.all(np.isfinite(val)) and (np.all(val > 0) if positive else np.all(val >= 0))
-            if not ok:
-                raise PiezojaxValueError(f"`{name}` must be finite and {'> 0' if positive else '>= 0'}, got {val}")
-        val = concrete_or_none(self.t_em)
-        if val is not None and not np.all(np.isfinite(val)):
-            raise PiezojaxValueError(f"`t_em` must be finite, got {val}")
+            setattr(self, name, check_positive(getattr(self, name), name, allow_zero=not positive))
 
     def check(self) -> "ElectromechanicalActuator":
-        """Return `self` with `eqx.error_if` checks of traced parameter values."""
-        pos = jnp.concatenate([jnp.stack([self.m, self.capacitance]), self.element_capacitances])
-        nonneg = jnp.concatenate([jnp.stack([self.b, self.k]), self.breakaway_voltages])
-        bad = ~jnp.all(jnp.isfinite(pos) & (pos > 0)) | ~jnp.all(jnp.isfinite(nonneg) & (nonneg >= 0))
-        bad = bad | ~jnp.all(jnp.isfinite(self.t_em))
-        m = eqx.error_if(self.m, bad, "ElectromechanicalActuator: m, capacitance, element_capacitances must be > 0 "
-                         "and b, k, breakaway_voltages >= 0 (all finite)")
-        return eqx.tree_at(lambda s: s.m, self, m)
+        """Return `self` with one value check of every parameter attached (raised now if concrete, one
+        `eqx.branched_error_if` if traced)."""
+        names = ("m", "capacitance", "element_capacitances", "b", "k", "breakaway_voltages", "t_em")
+
+        def ok(p):
+            pos = [jnp.all(jnp.isfinite(x) & (x > 0)) for x in p[:3]]
+            nonneg = [jnp.all(jnp.isfinite(x) & (x >= 0)) for x in p[3:6]]
+            return jnp.stack(pos + nonneg + [jnp.all(jnp.isfinite(p[6]))])
+
+        messages = [f"ElectromechanicalActuator: `{n}` must be finite and > 0" for n in names[:3]]
+        messages += [f"ElectromechanicalActuator: `{n}` must be finite and >= 0" for n in names[3:6]]
+        messages += ["ElectromechanicalActuator: `t_em` contains NaN or infinite values"]
+        params = check_value(tuple(getattr(self, n) for n in names), ok, messages)
+        return eqx.tree_at(lambda s: tuple(getattr(s, n) for n in names), self, params)
 
     def coupling(self, v_in: Array) -> Array:
         r"""$T_{em}(V_{in}) = \sum_j t_j V_{in}^j$."""

@@ -25,10 +25,14 @@ class AbstractObserver(eqx.Module):
 
     Every observer works under `jax.jit` (`eqx.filter_jit`), `jax.vmap`, `jax.grad` and `jax.jacfwd`; use float64
     for long records (the charge is a running integral of the circuit output).
+
+    Checks: as for the circuits (`AbstractCircuit`): complex, boolean or non-finite parameters and signals raise a
+    `PiezojaxValueError` naming the argument, or fail under `jit` through `eqx.error_if`.
     """
 
     def check(self) -> "AbstractObserver":
-        """Return `self` with data-dependent parameter checks attached (`eqx.error_if`). Default: none."""
+        """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
+        `eqx.error_if` if traced). Default: none."""
         return self
 
     @abc.abstractmethod

@@ -4,6 +4,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import check_value
 from .._circuits.base import (
     apply_operator,
     check_positive_param,
@@ -24,6 +25,11 @@ def butterworth3(cutoff: Array) -> TransferFunction:
     w = 2 * jnp.pi * cutoff
     one = jnp.ones((), w.dtype)
     return TransferFunction(jnp.stack([w**3]), jnp.stack([one, 2 * w, 2 * w**2, w**3]))
+
+
+def _check_nonzero(alpha: Array) -> Array:
+    message = "`displacement_coefficient` must be finite and nonzero"
+    return check_value(alpha, lambda a: jnp.isfinite(a) & (a != 0), message)
 
 
 class ForceDisplacementObserver(AbstractObserver):
@@ -91,7 +97,9 @@ class ForceDisplacementObserver(AbstractObserver):
         self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance")
         self.bias_current = check_scalar_param(bias_current, "bias_current")
         self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity")
-        self.displacement_coefficient = check_scalar_param(displacement_coefficient, "displacement_coefficient")
+        self.displacement_coefficient = _check_nonzero(
+            check_scalar_param(displacement_coefficient, "displacement_coefficient")
+        )
         self.stiffness = check_positive_param(stiffness, "stiffness")
         self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True)
         self.hysteresis = hysteresis
@@ -103,9 +111,7 @@ class ForceDisplacementObserver(AbstractObserver):
                  "stiffness", "capacitance_p") + (("filter_cutoff",) if self.filter_cutoff is not None else ())
         m = error_if_not_positive(self, names, allow_zero=("capacitance_p",))
         m = error_if_not_finite(m, ("bias_current",))
-        a = eqx.error_if(m.displacement_coefficient, ~jnp.isfinite(m.displacement_coefficient)
-                         | (m.displacement_coefficient == 0), "`displacement_coefficient` must be finite and nonzero")
-        return eqx.tree_at(lambda o: o.displacement_coefficient, m, a)
+        return eqx.tree_at(lambda o: o.displacement_coefficient, m, _check_nonzero(m.displacement_coefficient))
 
     def _compensated_charge(self, v: Array, v_out: Array, dt: Array) -> Array:
         leak = running_integral(v / self.leakage_resistance + self.bias_current, dt)

@@ -3,6 +3,7 @@
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import PiezojaxValueError
 from .._circuits.base import (
     check_positive_param,
     check_scalar_param,
@@ -70,10 +71,12 @@ class DynamicImpedanceObserver(AbstractObserver):
         self.alpha = check_scalar_param(alpha, "alpha")
         self.beta = check_scalar_param(beta, "beta")
         if not isinstance(dynamics, AbstractLinearSystem):
-            raise ValueError(f"`dynamics` must be a piezojax linear system (G(s)), got {type(dynamics).__name__}")
+            raise PiezojaxValueError(
+                f"`dynamics` must be a piezojax linear system (G(s)), got {type(dynamics).__name__}"
+            )
         self.dynamics = dynamics
         if hold not in ("zoh", "foh"):
-            raise ValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
+            raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         self.hold = hold
 
     def check(self) -> "DynamicImpedanceObserver":
