@@ -13,7 +13,9 @@ import dataclasses
 import io
 import math
 import os
+import re
 import types
+import warnings
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
@@ -40,10 +42,94 @@ UNITS: Mapping[str, str] = types.MappingProxyType(
 
 COLUMNS: tuple[str, ...] = ("t", "v_in") + CHANNELS
 
-DT_RTOL = 1e-6
-"""Largest accepted relative spread of the time steps: max |Δt_k − dt| ≤ DT_RTOL · dt."""
+_QUANTITIES = {"s": "time", "V": "voltage", "m": "length", "N": "force", "C": "charge", "A": "current"}
+_PREFIXES = {"k": 1e3, "": 1.0, "m": 1e-3, "u": 1e-6, "µ": 1e-6, "μ": 1e-6, "n": 1e-9, "p": 1e-12}
+
+
+class UnitWarning(UserWarning):
+    """A column's magnitude is implausible for its SI unit (e.g. a displacement spanning metres: probably µm)."""
+
+
+def unit_scale(column: str, unit: str, where: str = "units") -> float:
+    """The factor that converts `column` from `unit` to its SI unit (`UNITS`): `unit_scale("displacement", "um")`
+    is 1e-6. Units are the SI unit with an optional prefix k, m, u (or µ), n, p.
+
+    Raises `PiezojaxValueError` naming `where`, the column and the units it takes."""
+    if column not in COLUMNS:
+        raise PiezojaxValueError(f"{where}: unknown column {column!r}; columns are {list(COLUMNS)}")
+    base = UNITS[column]
+    if isinstance(unit, str):
+        u = unit.strip()
+        if u.endswith(base) and u[: len(u) - len(base)] in _PREFIXES:
+            return _PREFIXES[u[: len(u) - len(base)]]
+    allowed = ", ".join(p + base for p in ("k", "", "m", "u", "n", "p"))
+    raise PiezojaxValueError(
+        f"{where}: unknown unit {unit!r} for column {column!r}, a {_QUANTITIES[base]}; allowed: {allowed} "
+        f"(u or µ for micro)"
+    )
+
+
+def parse_units(units, where: str = "`units`") -> dict[str, float]:
+    """Validate a `{column: unit}` mapping (e.g. `{"displacement": "um", "t": "ms"}`); return `{column: scale to
+    SI}`. `None` means every column is in SI units."""
+    if units is None:
+        return {}
+    if not isinstance(units, Mapping):
+        raise PiezojaxValueError(f"{where} must be a mapping {{column: unit}}, got {type(units).__name__}")
+    return {str(k): unit_scale(str(k), v, where) for k, v in units.items()}
+
+
+# Plausible magnitudes for a piezoelectric actuator in SI units: (column, statistic, upper bound, hint).
+_PLAUSIBLE = (
+    ("v_in", "peak", 1e4, "V (kilovolts are the upper end of piezo drives; is it in mV?)"),
+    ("v_out", "peak", 1e4, "V (is it in mV?)"),
+    ("displacement", "range", 1e-2, "m (piezo strokes are below a few millimetres; is it in µm, nm or mm?)"),
+    ("force", "peak", 1e5, "N (is it in mN?)"),
+    ("charge", "peak", 1.0, "C (is it in µC or nC?)"),
+    ("current", "peak", 1e2, "A (is it in mA or µA?)"),
+)
+
+
+def plausibility_warnings(exp: "Experiment") -> list[str]:
+    """Messages for columns of `exp` whose magnitude is implausible in SI units (a record in µm read as metres,
+    in mV read as volts, ...); empty if everything looks plausible."""
+    out = []
+    for col, stat, bound, hint in _PLAUSIBLE:
+        if col not in exp.columns():
+            continue
+        a = exp[col]
+        value = float(np.ptp(a)) if stat == "range" else float(np.max(np.abs(a)))
+        if value > bound:
+            out.append(
+                f"{exp._label()}: column {col!r} has a {stat} of {value:.4g} {hint} — declare the column's unit "
+                f"(e.g. units = {{{col} = \"u{UNITS[col]}\"}} in [data], or --units {col}=u{UNITS[col]})"
+            )
+    if exp.dt < 1e-8 or exp.dt > 10.0:
+        out.append(
+            f"{exp._label()}: sampling step dt = {exp.dt:.4g} s is implausible for a piezo record (is 't' in ms or "
+            "µs? declare its unit, e.g. --units t=ms)"
+        )
+    return out
+
+MAX_MAGNITUDE = 1e30
+"""Largest accepted |value| in any column: beyond it, squares and products in the model and the residuals overflow
+float64."""
+
+DT_RTOL = 1e-3
+"""Largest accepted deviation of a time step from the typical (median) step, relative to it: max |Δt_k − dt| ≤
+DT_RTOL · dt, or two floating-point spacings of the largest |t| (float32 spacings for stamps that are float32 numbers),
+whichever is larger. Enough for time stamps
+rounded to float32 or stored at epoch scale (1.7e9 s, where float64 resolves 2.4e-7 s); a gap of missing samples or a
+change of rate is far above it. Accepted stamps are replaced by the uniform
+grid $t_0 + k dt$ through the first and last sample."""
+
+_SLICE_RTOL = 1e-6  # a slice boundary this close (relative to dt) to a sample counts as on it
 
 SUPPORTED_SUFFIXES: tuple[str, ...] = (".csv", ".npz", ".h5", ".hdf5", ".mat")
+
+FILE_MARKER = "piezojax_output"
+"""Name under which `save_experiment(..., marker=...)` records the piezojax command that wrote a file (a variable in
+NPZ and .mat files, a root attribute in HDF5, the first comment line in CSV); readers skip it."""
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -58,7 +144,9 @@ def _column(value, label: str, column: str) -> np.ndarray:
         raise PiezojaxValueError(f"{label}: column {column!r} is not an array ({type(value).__name__})") from e
     if arr.dtype.kind == "c":
         raise PiezojaxValueError(f"{label}: column {column!r} is complex; expected real numbers")
-    if arr.dtype.kind not in "biuf":
+    if arr.dtype.kind == "b":
+        raise PiezojaxValueError(f"{label}: column {column!r} is boolean (True/False); expected real numbers")
+    if arr.dtype.kind not in "iuf":
         raise PiezojaxValueError(f"{label}: column {column!r} is not numeric (dtype {arr.dtype})")
     if arr.ndim != 1:
         raise PiezojaxValueError(f"{label}: column {column!r} must be 1-D, got shape {tuple(arr.shape)}")
@@ -77,7 +165,9 @@ class Experiment:
 
     **Arguments:**
 
-    - `t`: sample times [s], strictly increasing and uniform (relative spread of the steps ≤ `DT_RTOL`).
+    - `t`: sample times [s], strictly increasing and uniform: each step within `DT_RTOL` of the typical one
+      (rounded stamps are accepted and replaced by the uniform grid; gaps and jitter beyond that are errors that
+      say which).
     - `v_in`: applied voltage [V].
     - `channels`: mapping from names in `CHANNELS` to measured signals (any subset, possibly empty).
     - `name`: the experiment's name (unique inside a `Dataset`).
@@ -131,6 +221,13 @@ class Experiment:
                     f"{label}: column {k!r} has a non-finite value ({a[i]}) at row {i} (0-based sample index); "
                     f"{int(bad.sum())} non-finite value(s) in total"
                 )
+            huge = np.abs(a) > MAX_MAGNITUDE
+            if huge.any():
+                i = int(np.argmax(huge))
+                raise PiezojaxValueError(
+                    f"{label}: column {k!r} has the value {a[i]:.6g} at row {i}; values beyond ±{MAX_MAGNITUDE:g} "
+                    f"overflow the model's arithmetic (expected {k!r} in {UNITS[k]})"
+                )
         t = cols["t"]
         d = np.diff(t)
         if not (d > 0).all():
@@ -139,15 +236,33 @@ class Experiment:
                 f"{label}: column 't' is not strictly increasing: "
                 f"t[{i + 1}] = {float(t[i + 1])!r} <= t[{i}] = {float(t[i])!r}"
             )
-        dt = (t[-1] - t[0]) / (n - 1)
-        dev = np.abs(d - dt)
+        step = float(np.median(d))
+        dev = np.abs(d - step)
         j = int(np.argmax(dev))
-        if dev[j] > DT_RTOL * dt:
+        # a step between rounded stamps is exact to one spacing of their floating-point type at the largest |t|,
+        # the median step to another: float64, or float32 for stamps that are all float32 numbers
+        top = np.max(np.abs(t))
+        single = np.array_equal(t.astype(np.float32).astype(np.float64), t)
+        resolution = 2 * float(np.spacing(np.float32(top) if single else top))
+        tol = max(DT_RTOL * step, resolution) if resolution < 0.1 * step else DT_RTOL * step
+        if dev[j] > tol:
+            ratio = d[j] / step
+            if ratio > 1.5:
+                what = f"a gap: about {round(ratio) - 1} sample(s) missing"
+            elif ratio < 0.75:
+                what = "samples closer than the typical step (a change of rate, or repeated samples?)"
+            else:
+                what = (f"jitter of {dev[j] / step:.3g}·dt, more than the {tol / step:.3g}·dt accepted for rounded "
+                        "stamps")
             raise PiezojaxValueError(
-                f"{label}: column 't' is not uniformly sampled: mean step dt = {dt:.6g} s but "
-                f"t[{j + 1}] - t[{j}] = {d[j]:.6g} s (max |Δt - dt| = {dev[j]:.3g} s = {dev[j] / dt:.3g}·dt "
-                f"> {DT_RTOL:g}·dt); resample the record onto a uniform grid"
+                f"{label}: column 't' is not uniformly sampled: typical step dt = {step:.6g} s but "
+                f"t[{j + 1}] - t[{j}] = {d[j]:.6g} s = {ratio:.4g}·dt at row {j + 1} ({what}); resample the record "
+                "onto a uniform grid"
             )
+        dt = (t[-1] - t[0]) / (n - 1)
+        if np.max(np.abs(d - dt)) > 1e-9 * dt:  # rounded stamps: the grid they stand for
+            t = t[0] + dt * np.arange(n, dtype=np.float64)
+            t[-1] = cols["t"][-1]
         object.__setattr__(self, "t", _readonly(t))
         object.__setattr__(self, "v_in", _readonly(cols["v_in"]))
         chans = {k: _readonly(cols[k]) for k in CHANNELS if k in cols}
@@ -261,7 +376,7 @@ class Experiment:
 
         A new `Experiment` with at least 2 samples (else `PiezojaxValueError`).
         """
-        tol = DT_RTOL * self.dt
+        tol = _SLICE_RTOL * self.dt
         i0 = 0 if start is None else int(np.searchsorted(self.t, float(start) - tol, side="left"))
         i1 = self.n if stop is None else int(np.searchsorted(self.t, float(stop) - tol, side="left"))
         if i1 - i0 < 2:
@@ -294,16 +409,64 @@ def _squeeze_vector(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _looks_like_sample_indices(t) -> bool:
+    try:
+        t = np.asarray(t, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return t.ndim == 1 and t.size >= 3 and bool(np.all(np.diff(t) == 1.0)) and bool(np.all(t == np.round(t)))
+
+
+def parse_columns(columns, where: str = "`columns`") -> dict[str, str]:
+    """Validate a `{file column: piezojax column}` renaming (e.g. `{"u": "v_in", "y": "displacement"}`; for a CSV file
+    without a header, the keys are 1-based positions: `{"2": "t", "4": "v_in"}`)."""
+    if columns is None:
+        return {}
+    if not isinstance(columns, Mapping):
+        raise PiezojaxValueError(f"{where} must be a mapping {{file column: column}}, got {type(columns).__name__}")
+    out = {str(k): v for k, v in columns.items()}
+    for k, v in out.items():
+        if not k or not isinstance(v, str) or v not in COLUMNS:
+            raise PiezojaxValueError(
+                f"{where}: {k!r} = {v!r}: the new name must be one of {list(COLUMNS)}"
+            )
+    targets = list(out.values())
+    dup = sorted({v for v in targets if targets.count(v) > 1})
+    if dup:
+        raise PiezojaxValueError(f"{where}: several file columns renamed to {dup}")
+    return out
+
+
 def _columns_to_experiment(
-    data: Mapping[str, np.ndarray], path: Path, name: str | None, ignore_extra: bool
+    data: Mapping[str, np.ndarray], path: Path, name: str | None, ignore_extra: bool, units=None, columns=None,
+    sample_rate: float | None = None,
 ) -> Experiment:
     src = str(path)
     label = f"file {src!r}"
+    data = {k: v for k, v in data.items() if k != FILE_MARKER}
+    renames = parse_columns(columns)
+    absent = [k for k in renames if k not in data]
+    if absent:
+        raise PiezojaxValueError(f"{label}: `columns` renames {absent}, which the file does not have; found "
+                                 f"{sorted(data)}")
+    clash = [v for k, v in renames.items() if v in data and v not in renames]
+    if clash:
+        raise PiezojaxValueError(f"{label}: `columns` renames a column to {clash[0]!r}, which the file has already")
+    data = {renames.get(k, k): v for k, v in data.items()}
+    if sample_rate is not None:
+        if "t" in data:
+            raise PiezojaxValueError(f"{label}: has a 't' column and a sample rate was given; give only one")
+        fs = float(sample_rate) if np.ndim(sample_rate) == 0 else math.nan
+        if not (math.isfinite(fs) and fs > 0):
+            raise PiezojaxValueError(f"`sample_rate` must be a positive finite number of Hz, got {sample_rate!r}")
+        if "v_in" in data:
+            data["t"] = np.arange(np.shape(_squeeze_vector(np.asarray(data["v_in"])))[0], dtype=np.float64) / fs
     missing = [c for c in ("t", "v_in") if c not in data]
     if missing:
         raise PiezojaxValueError(
             f"{label}: required column(s) {missing} missing; found {sorted(data)} "
-            f"(expected 't' [s], 'v_in' [V] and any of {list(CHANNELS)})"
+            f"(expected 't' [s], 'v_in' [V] and any of {list(CHANNELS)}; rename columns with `columns`, or give "
+            "`sample_rate` for a file without 't')"
         )
     extra = [k for k in data if k not in COLUMNS]
     if extra and not ignore_extra:
@@ -311,24 +474,62 @@ def _columns_to_experiment(
             f"{label}: unknown column(s) {extra}; allowed columns are {list(COLUMNS)} (pass ignore_extra=True to "
             "skip them)"
         )
-    return Experiment(
+    scales = parse_units(units)
+    data = dict(data)
+    for k, scale in scales.items():
+        if k in data and scale != 1.0:
+            data[k] = _column(data[k], label, k) * scale
+    exp = Experiment(
         t=data["t"],
         v_in=data["v_in"],
         channels={k: data[k] for k in CHANNELS if k in data},
         name=path.stem if name is None else name,
         source=src,
     )
+    if "t" not in scales and sample_rate is None and _looks_like_sample_indices(exp.t):
+        t = exp.t
+        raise PiezojaxValueError(
+            f"{label}: column 't' holds sample indices ({t[0]:g}, {t[1]:g}, {t[2]:g}, … in steps of 1), not times in "
+            "seconds; write t in seconds, or declare its unit (units = {t = \"ms\"} in [data], --units t=ms; "
+            "t = \"s\" if the record really is sampled at 1 Hz)"
+        )
+    return exp
 
 
-def _read_csv(path: Path) -> dict[str, np.ndarray]:
+def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
     text = path.read_text(encoding="utf-8-sig")
-    lines = [(i + 1, ln) for i, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith("#")]
+    all_lines = text.splitlines()
+    lines = [(i + 1, ln) for i, ln in enumerate(all_lines) if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise PiezojaxValueError(f"file {str(path)!r}: no header row (the file is empty or has only comments)")
     head = lines[0][1]
     # Comma by default; tab or semicolon (spreadsheet exports in some locales) when the header uses them instead.
     delim = next((d for d in (",", "\t", ";") if d in head), ",")
-    header = [h.strip().strip('"').strip("'").strip() for h in head.split(delim)]
+    split = lambda row: [h.strip().strip('"').strip("'").strip() for h in row.split(delim)]  # noqa: E731
+    header = split(head)
+    usecols = None
+    if any(header) and all(_is_number(h) for h in header if h):
+        # numpy.savetxt(header=...) writes the column names as a '#' comment: take the comment line just above
+        comment = all_lines[lines[0][0] - 2].lstrip() if lines[0][0] >= 2 else ""
+        names = split(comment[1:]) if comment.startswith("#") else []
+        positions = [k for k in (columns or {}) if k.isdigit()]
+        if len(names) == len(header) and all(n and not _is_number(n) for n in names):
+            header, lines = names, [(0, "")] + lines
+        elif positions:
+            # no header: the columns are named by their 1-based positions, and only the named ones are read
+            bad = [k for k in positions if not 1 <= int(k) <= len(header)]
+            if bad:
+                raise PiezojaxValueError(
+                    f"file {str(path)!r}: `columns` names position(s) {bad}, but the lines have {len(header)} fields"
+                )
+            header, lines = [str(i + 1) for i in range(len(header))], [(0, "")] + lines
+            usecols = sorted(int(k) - 1 for k in positions)
+        else:
+            raise PiezojaxValueError(
+                f"file {str(path)!r}: no header row: line {lines[0][0]}, the first line that is not a '#' comment, "
+                f"holds numbers; the first line must name the columns (t, v_in, {', '.join(CHANNELS)}), or name "
+                "them by position (columns = {1 = \"t\", 2 = \"v_in\", ...} in [data], or --columns 1=t,2=v_in,...)"
+            )
     if any(not h for h in header):
         raise PiezojaxValueError(f"file {str(path)!r}: empty column name in header row {head!r}")
     dup = sorted({h for h in header if header.count(h) > 1})
@@ -341,16 +542,40 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
                 f"file {str(path)!r}: line {lineno} has {ln.count(delim) + 1} fields but the header names "
                 f"{len(header)} columns"
             )
+    if usecols is not None:
+        header = [header[j] for j in usecols]
     if not body:
         return {h: np.zeros(0) for h in header}
     try:
-        values = np.loadtxt(io.StringIO("\n".join(ln for _, ln in body)), delimiter=delim, ndmin=2, dtype=np.float64)
+        values = np.loadtxt(io.StringIO("\n".join(ln for _, ln in body)), delimiter=delim, ndmin=2, dtype=np.float64,
+                            usecols=usecols)
     except ValueError as e:
         raise PiezojaxValueError(f"file {str(path)!r}: cannot parse numbers ({e})") from e
     return {h: values[:, j] for j, h in enumerate(header)}
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    with open(path, "rb") as f:
+        magic = f.read(6)
+    if magic.startswith(b"\x93NUMPY"):
+        raise PiezojaxValueError(
+            f"file {str(path)!r}: a single .npy array, not an .npz archive of named columns (save with "
+            "numpy.savez(path, t=..., v_in=..., ...))"
+        )
+    if not magic.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+        kind = "text" if magic and all(32 <= c < 127 or c in b"\t\r\n" for c in magic) else "something else"
+        raise PiezojaxValueError(
+            f"file {str(path)!r}: not an .npz archive (those are zip files; this one starts with {magic!r}, "
+            f"which looks like {kind}); rename a CSV file to .csv"
+        )
     with np.load(path, allow_pickle=False) as z:
         return {k: _squeeze_vector(np.asarray(z[k])) for k in z.files}
 
@@ -412,7 +637,14 @@ def _resolve_path(path: str | os.PathLike) -> Path:
 
 
 def load_experiment(
-    path: str | os.PathLike, name: str | None = None, *, group: str | None = None, ignore_extra: bool = False
+    path: str | os.PathLike,
+    name: str | None = None,
+    *,
+    group: str | None = None,
+    ignore_extra: bool = False,
+    units: Mapping[str, str] | None = None,
+    columns: Mapping[str, str] | None = None,
+    sample_rate: float | None = None,
 ) -> Experiment:
     """Load one experiment from a data file, chosen by suffix.
 
@@ -429,6 +661,14 @@ def load_experiment(
     - `group`: HDF5 / v7.3 `.mat` group holding the datasets, or for a v5 `.mat` a struct variable holding the
       columns as fields (default: the root / top-level variables).
     - `ignore_extra`: skip columns that are not `t`, `v_in` or a channel instead of raising.
+    - `units`: the units of columns not in SI, `{column: unit}` (e.g. `{"displacement": "um", "v_in": "mV",
+      "t": "ms"}`; the SI unit with a prefix k, m, u/µ, n or p); they are converted to SI on loading. Without a
+      declared unit, a `t` column of sample indices (0, 1, 2, …) is an error, and implausible magnitudes for SI
+      (a displacement spanning centimetres, kilovolt signals, …) give a `UnitWarning`.
+    - `columns`: renames file columns, `{file column: column}` (e.g. `{"u": "v_in", "y": "displacement"}`); for a
+      CSV file without a header row, the keys are the 1-based positions of the fields to read
+      (`{"2": "t", "3": "displacement", "4": "v_in"}`; other fields are skipped).
+    - `sample_rate`: for a file without a `t` column, the sampling rate [Hz]; $t_k = k / f_s$.
 
     **Returns:**
 
@@ -448,7 +688,7 @@ def load_experiment(
     suffix = p.suffix.lower()
     try:
         if suffix == ".csv":
-            data = _read_csv(p)
+            data = _read_csv(p, parse_columns(columns))
         elif suffix == ".npz":
             data = _read_npz(p)
         elif suffix in (".h5", ".hdf5"):
@@ -459,10 +699,45 @@ def load_experiment(
         raise
     except Exception as e:  # parsers raise anything (OSError, ValueError, zipfile.BadZipFile, struct.error, ...)
         raise PiezojaxValueError(f"file {str(p)!r}: cannot read it as {suffix} ({type(e).__name__}: {e})") from e
-    return _columns_to_experiment(data, p, name, ignore_extra)
+    exp = _columns_to_experiment(data, p, name, ignore_extra, units, columns, sample_rate)
+    for message in plausibility_warnings(exp):
+        warnings.warn(message, UnitWarning, stacklevel=2)
+    return exp
 
 
-def save_experiment(exp: Experiment, path: str | os.PathLike, *, group: str | None = None) -> Path:
+def read_file_marker(path: str | os.PathLike) -> str | None:
+    """The piezojax command recorded in a data file written by `save_experiment(..., marker=...)` (e.g.
+    `"simulate"`), or None (no marker, or not readable)."""
+    p = Path(os.fspath(path))
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".csv":
+            with open(p, encoding="utf-8") as f:
+                first = f.readline(4096)
+            m = re.match(r"# piezojax (\w+) output:", first)
+            return m.group(1) if m else None
+        if suffix == ".npz":
+            with np.load(p, allow_pickle=False) as z:
+                return str(z[FILE_MARKER]) if FILE_MARKER in z.files else None
+        if suffix in (".h5", ".hdf5"):
+            import h5py
+
+            with h5py.File(p, "r") as f:
+                value = f.attrs.get(FILE_MARKER)
+            return None if value is None else (value.decode() if isinstance(value, bytes) else str(value))
+        if suffix == ".mat":
+            import scipy.io
+
+            value = scipy.io.loadmat(p, variable_names=[FILE_MARKER]).get(FILE_MARKER)
+            return None if value is None else str(np.asarray(value).reshape(-1)[0])
+    except Exception:  # noqa: BLE001 - any unreadable file simply has no marker
+        return None
+    return None
+
+
+def save_experiment(
+    exp: Experiment, path: str | os.PathLike, *, group: str | None = None, marker: str | None = None
+) -> Path:
     """Write `exp` to a data file (format by suffix, as in `load_experiment`), atomically.
 
     CSV numbers are written with 17 significant digits, so every format round-trips float64 exactly. `.mat` files
@@ -473,6 +748,8 @@ def save_experiment(exp: Experiment, path: str | os.PathLike, *, group: str | No
     - `exp`: the experiment.
     - `path`: destination file; its suffix picks the format.
     - `group`: for HDF5, write the datasets into this group instead of the root.
+    - `marker`: the piezojax command writing the file (e.g. `"simulate"`), recorded in it (see `FILE_MARKER`) so
+      that a later `--overwrite` can tell its own output from a user's data.
 
     **Returns:**
 
@@ -487,26 +764,32 @@ def save_experiment(exp: Experiment, path: str | os.PathLike, *, group: str | No
     p = _resolve_path(path)
     cols = exp.columns()
     suffix = p.suffix.lower()
+    if marker is not None and not re.fullmatch(r"\w+", marker):
+        raise PiezojaxValueError(f"`marker` must be a word, got {marker!r}")
+    extra = {} if marker is None else {FILE_MARKER: np.array(marker)}
     if suffix == ".csv":
         units = ", ".join(f"{k} [{UNITS[k]}]" for k in cols)
-        head = f"# piezojax experiment {exp.name!r}; units: {units}\n" + ",".join(cols) + "\n"
+        written = "experiment" if marker is None else f"{marker} output: experiment"
+        head = f"# piezojax {written} {exp.name!r}; units: {units}\n" + ",".join(cols) + "\n"
         buf = io.StringIO()
         np.savetxt(buf, np.column_stack(list(cols.values())), delimiter=",", fmt="%.17g")
         return atomic_write_bytes(p, (head + buf.getvalue()).encode("utf-8"))
     if suffix == ".npz":
         buf = io.BytesIO()
-        np.savez(buf, **cols)
+        np.savez(buf, **cols, **extra)
         return atomic_write_bytes(p, buf.getvalue())
     if suffix == ".mat":
         import scipy.io
 
         buf = io.BytesIO()
-        scipy.io.savemat(buf, cols, oned_as="column")
+        scipy.io.savemat(buf, {**cols, **extra}, oned_as="column")
         return atomic_write_bytes(p, buf.getvalue())
     import h5py
 
     with atomic_file(p) as tmp:
         with h5py.File(tmp, "w") as f:
+            if marker is not None:
+                f.attrs[FILE_MARKER] = marker
             g = f if group is None else f.create_group(group)
             for k, v in cols.items():
                 ds = g.create_dataset(k, data=v)
@@ -604,7 +887,14 @@ class Dataset(Sequence):
 
     @classmethod
     def from_files(
-        cls, paths: Iterable[str | os.PathLike], *, group: str | None = None, ignore_extra: bool = False
+        cls,
+        paths: Iterable[str | os.PathLike],
+        *,
+        group: str | None = None,
+        ignore_extra: bool = False,
+        units: Mapping[str, str] | None = None,
+        columns: Mapping[str, str] | None = None,
+        sample_rate: float | None = None,
     ) -> "Dataset":
         """Load every file with `load_experiment`; names are the file stems, made unique by prefixing parent
         directories where stems collide (`run1/data.csv`, `run2/data.csv` → `run1/data`, `run2/data`).
@@ -612,7 +902,7 @@ class Dataset(Sequence):
         **Arguments:**
 
         - `paths`: data files.
-        - `group`, `ignore_extra`: as in `load_experiment`.
+        - `group`, `ignore_extra`, `units`, `columns`, `sample_rate`: as in `load_experiment`.
 
         **Returns:**
 
@@ -624,7 +914,8 @@ class Dataset(Sequence):
         if not ps:
             raise PiezojaxValueError("`paths` must name at least one data file")
         names = _unique_names(ps)
-        return cls(load_experiment(p, name=n, group=group, ignore_extra=ignore_extra) for p, n in zip(ps, names))
+        return cls(load_experiment(p, name=n, group=group, ignore_extra=ignore_extra, units=units, columns=columns,
+                                   sample_rate=sample_rate) for p, n in zip(ps, names))
 
     def __len__(self) -> int:
         return len(self._experiments)

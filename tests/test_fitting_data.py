@@ -35,7 +35,8 @@ DT = 1e-4
 
 def _make(rng, n=N, dt=DT, name="exp", channels=("v_out", "displacement", "force"), t0=0.0):
     # Values with full float64 mantissas, so exact round trips are a real test of the writers.
-    chans = {c: rng.standard_normal(n) * 10.0 ** rng.integers(-9, 2) for c in channels}
+    scale = {"charge": 1e-9}  # plausible coulombs: no unit warning
+    chans = {c: rng.standard_normal(n) * 10.0 ** rng.integers(-9, 2) * scale.get(c, 1.0) for c in channels}
     return Experiment.from_arrays(v_in=100 * rng.random(n), dt=dt, t0=t0, name=name, **chans)
 
 
@@ -123,14 +124,27 @@ def test_experiment_nan_names_column_and_row():
 
 
 def test_uniformity_tolerance():
-    # Rounding error of arange-like times (≈1e-12 relative) is accepted; a 1e-5 relative jitter is not, and the
-    # message gives the size and place of the worst step.
+    # Rounded stamps are accepted and replaced by their uniform grid: arange-like rounding, float32 stamps, epoch-scale
+    # times, jitter up to 1e-3·dt. A larger jitter, a gap and a change of rate are errors that say which, with the
+    # size and place of the worst step.
     t = np.arange(10_000) * 1e-4 + 1000.0
-    Experiment.from_arrays(t=t, v_in=np.zeros_like(t))
+    e = Experiment.from_arrays(t=t, v_in=np.zeros_like(t))
+    np.testing.assert_array_equal(e.t, t)  # exact grids are kept bit for bit
+    for stamps, dt in (((np.arange(50_000) * 2e-4).astype(np.float32), 2e-4), (np.arange(10_000) * 2e-4 + 1.7e9, 2e-4),
+                       (t + 5e-8 * np.sin(np.arange(10_000)), 1e-4)):
+        e = Experiment.from_arrays(t=stamps, v_in=np.zeros(stamps.size))
+        assert e.dt == pytest.approx(dt, rel=1e-6)
+        np.testing.assert_allclose(e.t, np.asarray(stamps, np.float64), rtol=0, atol=5e-3 * e.dt)
     t2 = t.copy()
-    t2[7000] += 1e-9
-    with pytest.raises(PiezojaxValueError, match=r"t\[7000\] - t\[6999\].*max \|Δt - dt\| = 1e-09"):
+    t2[7000] += 2e-7
+    with pytest.raises(PiezojaxValueError, match=r"t\[7000\] - t\[6999\] = .* at row 7000 \(jitter of 0.002·dt"):
         Experiment.from_arrays(t=t2, v_in=np.zeros_like(t))
+    gap = np.delete(t, [5000, 5001])
+    with pytest.raises(PiezojaxValueError, match=r"t\[5000\] - t\[4999\] = .*3·dt.*a gap: about 2 sample\(s\) missing"):
+        Experiment.from_arrays(t=gap, v_in=np.zeros_like(gap))
+    fast = np.concatenate([t[:5000], t[4999] + 0.5e-4 * np.arange(1, 1001)])
+    with pytest.raises(PiezojaxValueError, match=r"not uniformly sampled.*change of rate"):
+        Experiment.from_arrays(t=fast, v_in=np.zeros_like(fast))
 
 
 def test_slice_partitions_record(rng):
@@ -248,7 +262,7 @@ def test_csv_bad_input_names_file_and_column(tmp_path, text, match):
 
 @pytest.mark.parametrize("suffix", [".npz", ".h5", ".mat"])
 def test_binary_formats_bad_columns(tmp_path, suffix):
-    t = np.arange(5.0)
+    t = np.arange(5.0) * 1e-3
     v = np.ones(5)
     p = tmp_path / f"b{suffix}"
 
@@ -277,7 +291,7 @@ def test_binary_formats_bad_columns(tmp_path, suffix):
     write({"t": t, "v_in": v, "charge": bad})
     with pytest.raises(PiezojaxValueError, match=rf"b\{suffix}.*column 'charge'.*at row 2"):
         load_experiment(p)
-    write({"t": np.array([0.0, 1.0, 2.0, 4.0, 5.0]), "v_in": v})
+    write({"t": np.array([0.0, 1.0, 2.0, 4.0, 5.0]) * 1e-3, "v_in": v})
     with pytest.raises(PiezojaxValueError, match=rf"b\{suffix}.*column 't' is not uniformly sampled"):
         load_experiment(p)
 
