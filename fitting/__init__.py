@@ -7,48 +7,91 @@
   normal-equation form: $J^\top J$ and $J^\top r$ by forward mode at each accepted point, a chunk of experiments at
   a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN.
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
+
+Importing `fitting` is cheap: each name is imported from its module on first use (PEP 562), so the command line
+(`fitting.cli`) can install its signal handlers before JAX is loaded.
 """
 
-from ._config import ModelConfig as ModelConfig, load_config as load_config, parse_config as parse_config
-from ._data import (
-    CHANNELS as CHANNELS,
-    SUPPORTED_SUFFIXES as SUPPORTED_SUFFIXES,
-    UNITS as UNITS,
-    Dataset as Dataset,
-    Experiment as Experiment,
-    PaddedData as PaddedData,
-    load_experiment as load_experiment,
-    save_experiment as save_experiment,
-)
-from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
-from ._io import (
-    atomic_directory as atomic_directory,
-    atomic_file as atomic_file,
-    atomic_write_bytes as atomic_write_bytes,
-    atomic_write_text as atomic_write_text,
-    check_writable as check_writable,
-    save_json as save_json,
-    to_jsonable as to_jsonable,
-)
-from ._predict import (
-    ExperimentArrays as ExperimentArrays,
-    Predictor as Predictor,
-    actuator_predictor as actuator_predictor,
-    default_predictor as default_predictor,
-    hysteresis_predictor as hysteresis_predictor,
-    observer_predictor as observer_predictor,
-)
-from ._problem import (
-    Problem as Problem,
-    estimate_noise_std as estimate_noise_std,
-    free_mask as free_mask,
-    parameter_paths as parameter_paths,
-)
-from ._results import (
-    FitResult as FitResult,
-    error_metrics as error_metrics,
-    load_model as load_model,
-    load_summary as load_summary,
-)
-from ._solve import fit as fit, set_smoothing as set_smoothing, solve as solve
-from ._staged import staged_ivan2009 as staged_ivan2009
+import importlib
+from typing import TYPE_CHECKING
+
+_EXPORTS = {
+    "._config": ("ModelConfig", "load_config", "parse_config"),
+    "._data": (
+        "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "PaddedData", "load_experiment",
+        "save_experiment",
+    ),
+    "._initialise": ("cold_start_actuator", "cold_start_free"),
+    "._io": (
+        "atomic_directory", "atomic_file", "atomic_write_bytes", "atomic_write_text", "check_writable", "save_json",
+        "to_jsonable",
+    ),
+    "._predict": (
+        "ExperimentArrays", "Predictor", "actuator_predictor", "default_predictor", "hysteresis_predictor",
+        "observer_predictor",
+    ),
+    "._problem": ("Problem", "estimate_noise_std", "free_mask", "parameter_paths"),
+    "._results": ("FitResult", "error_metrics", "load_model", "load_summary"),
+    "._solve": ("fit", "set_smoothing", "solve"),
+    "._staged": ("staged_ivan2009",),
+}
+_LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'fitting' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+if TYPE_CHECKING:  # the same names for static analysis
+    from ._config import ModelConfig as ModelConfig, load_config as load_config, parse_config as parse_config
+    from ._data import (
+        CHANNELS as CHANNELS,
+        SUPPORTED_SUFFIXES as SUPPORTED_SUFFIXES,
+        UNITS as UNITS,
+        Dataset as Dataset,
+        Experiment as Experiment,
+        PaddedData as PaddedData,
+        load_experiment as load_experiment,
+        save_experiment as save_experiment,
+    )
+    from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
+    from ._io import (
+        atomic_directory as atomic_directory,
+        atomic_file as atomic_file,
+        atomic_write_bytes as atomic_write_bytes,
+        atomic_write_text as atomic_write_text,
+        check_writable as check_writable,
+        save_json as save_json,
+        to_jsonable as to_jsonable,
+    )
+    from ._predict import (
+        ExperimentArrays as ExperimentArrays,
+        Predictor as Predictor,
+        actuator_predictor as actuator_predictor,
+        default_predictor as default_predictor,
+        hysteresis_predictor as hysteresis_predictor,
+        observer_predictor as observer_predictor,
+    )
+    from ._problem import (
+        Problem as Problem,
+        estimate_noise_std as estimate_noise_std,
+        free_mask as free_mask,
+        parameter_paths as parameter_paths,
+    )
+    from ._results import (
+        FitResult as FitResult,
+        error_metrics as error_metrics,
+        load_model as load_model,
+        load_summary as load_summary,
+    )
+    from ._solve import fit as fit, set_smoothing as set_smoothing, solve as solve
+    from ._staged import staged_ivan2009 as staged_ivan2009

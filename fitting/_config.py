@@ -26,13 +26,22 @@ import numpy as np
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._data import CHANNELS
+from ._data import CHANNELS, parse_columns, parse_units
 
 HYSTERESIS_KINDS = ("prandtl_ishlinskii", "bouc_wen", "maxwell_slip", "none")
 CREEP_KINDS = ("kelvin_voigt", "logarithmic", "none")
 OBSERVER_KINDS = ("current_integration",)
 DYNAMICS_ORDERS = (0, 1, 2, 3, 4)
-TABLES = ("hysteresis", "creep", "dynamics", "charge", "observer", "fit")
+TABLES = ("hysteresis", "creep", "dynamics", "charge", "observer", "data", "fit")
+
+# Upper bounds on the sizes a CONFIG may ask for, checked before any work: beyond them the initialisation (dense
+# NNLS over plays x samples) or the fit's memory grows past what the method is meant for.
+MAX_PLAYS = 100
+MAX_ELEMENTS = 100
+MAX_CREEP_ORDER = 10
+MAX_SUBSTEPS = 64
+MAX_STEPS = 100_000
+MAX_LEVELS = 10
 
 # keys allowed per table (and per kind), besides `kind`
 _HYSTERESIS_KEYS = {
@@ -58,6 +67,7 @@ _OBSERVER_REQUIRED = (
 )
 _OBSERVER_KEYS = _OBSERVER_REQUIRED + ("bias_current", "capacitance_p", "filter_cutoff")
 _FIT_KEYS = ("free", "weights", "smoothing", "max_steps", "targets", "method")
+_DATA_KEYS = ("units", "columns", "group", "sample_rate", "ignore_extra")
 _WEIGHT_MODES = ("range", "noise")
 
 
@@ -114,7 +124,7 @@ class _Table:
             raise self.error("must be nonzero", key)
         return float(x)
 
-    def integer(self, key: str, default=None, *, minimum=None, allowed=None):
+    def integer(self, key: str, default=None, *, minimum=None, maximum=None, allowed=None):
         if key not in self.data:
             return default
         x = self.data[key]
@@ -124,6 +134,8 @@ class _Table:
             raise self.error(f"must be one of {', '.join(map(str, allowed))}; got {x}", key)
         if minimum is not None and x < minimum:
             raise self.error(f"must be >= {minimum}, got {x}", key)
+        if maximum is not None and x > maximum:
+            raise self.error(f"must be <= {maximum} (the documented upper bound), got {x}", key)
         return x
 
     def string(self, key: str, allowed: tuple[str, ...], default=None):
@@ -158,10 +170,12 @@ class _Table:
             raise self.error(f"entries must be strictly ascending, got {x}", key)
         return a
 
-    def sized_vectors(self, size_key: str, default_size: int, specs: dict[str, dict]) -> tuple[int, list]:
-        """A block of `size_key` elements and its per-element vectors `specs` (name → `vector` options): the size
-        is given, or taken from the vectors given (which must agree), else `default_size`."""
-        n = self.integer(size_key, None, minimum=1)
+    def sized_vectors(
+        self, size_key: str, default_size: int, maximum: int, specs: dict[str, dict]
+    ) -> tuple[int, list]:
+        """A block of `size_key` elements (at most `maximum`) and its per-element vectors `specs` (name → `vector`
+        options): the size is given, or taken from the vectors given (which must agree), else `default_size`."""
+        n = self.integer(size_key, None, minimum=1, maximum=maximum)
         vectors = [self.vector(name, n, **opts) for name, opts in specs.items()]
         sizes = {len(x) for x in vectors if x is not None}
         if n is None:
@@ -169,6 +183,10 @@ class _Table:
                 names = list(specs)
                 raise self.error(f"`{names[0]}` and `{names[1]}` must have the same length", names[0])
             n = sizes.pop() if sizes else default_size
+            if n > maximum:
+                name = next(k for k, x in zip(specs, vectors) if x is not None)
+                raise self.error(f"has {n} entries; at most {maximum} (the documented upper bound of "
+                                 f"`{size_key}`)", name)
         return n, vectors
 
 
@@ -199,6 +217,8 @@ class ModelConfig:
       `observer` (the `[observer]` options, or `None` for a `pj.Actuator`).
     - `free`, `weights`, `smoothing`, `max_steps`, `targets`, `method`: the `[fit]` options (`free=None`: the default
       set of `default_free`; `method`: `fitting.solve`'s, default `"levenberg_marquardt"`).
+    - `data`: the `[data]` options for reading the files — `units`, `columns`, `group`, `sample_rate`,
+      `ignore_extra`, as the keyword arguments of `fitting.load_experiment` (only those the file gives).
     """
 
     text: str
@@ -217,6 +237,7 @@ class ModelConfig:
     max_steps: int
     targets: tuple[str, ...] | None
     method: str = "levenberg_marquardt"
+    data: dict = dataclasses.field(default_factory=dict)
 
     # -------------------------------------------------------------------------------------------- structure
 
@@ -783,18 +804,18 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     if h_kind != "none":
         ho["smoothing"] = ht.number("smoothing", 0.0, nonnegative=True)
     if h_kind == "prandtl_ishlinskii":
-        n, (w, r) = ht.sized_vectors("plays", 10, {"weights": dict(positive=True),
+        n, (w, r) = ht.sized_vectors("plays", 10, MAX_PLAYS, {"weights": dict(positive=True),
                                                     "thresholds": dict(positive=True, ascending=True)})
         ho.update(plays=n, weights=w, thresholds=r, w0=ht.number("w0", None, positive=True))
     elif h_kind == "maxwell_slip":
-        n, (k, f) = ht.sized_vectors("elements", 8, {"stiffness": dict(positive=True),
+        n, (k, f) = ht.sized_vectors("elements", 8, MAX_ELEMENTS, {"stiffness": dict(positive=True),
                                                       "breakaway": dict(positive=True)})
         ho.update(elements=n, stiffness=k, breakaway=f)
     elif h_kind == "bouc_wen":
         ho.update(A=ht.number("A", None, positive=True), beta=ht.number("beta", None, positive=True),
                   gamma=ht.number("gamma", None), n=ht.number("n", None, positive=True), d=ht.number("d", None),
                   method=ht.string("method", ("closed_form", "rk4")),
-                  substeps=ht.integer("substeps", 8, minimum=1))
+                  substeps=ht.integer("substeps", 8, minimum=1, maximum=MAX_SUBSTEPS))
         if ho["method"] == "closed_form" and ho["n"] not in (None, 1.0):
             raise ht.error(f"method 'closed_form' needs n = 1, got n = {ho['n']}", "method")
         if ho["method"] == "closed_form" and ho["smoothing"] != 0:
@@ -806,7 +827,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     ct = _Table(source, "creep", c_raw, _CREEP_KEYS[c_kind], c_kind)
     co: dict[str, Any] = {}
     if c_kind == "kelvin_voigt":
-        n, (k, tau) = ct.sized_vectors("order", 1, {"stiffnesses": dict(positive=True),
+        n, (k, tau) = ct.sized_vectors("order", 1, MAX_CREEP_ORDER, {"stiffnesses": dict(positive=True),
                                                      "time_constants": dict(positive=True)})
         co.update(order=n, stiffnesses=k, time_constants=tau)
     elif c_kind == "logarithmic":
@@ -893,8 +914,10 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
                            "smoothing")
         if h_kind == "none":
             raise ft.error("continuation needs a hysteresis block with smoothing", "smoothing")
+        if len(smoothing) > MAX_LEVELS:
+            raise ft.error(f"at most {MAX_LEVELS} continuation levels, got {len(smoothing)}", "smoothing")
         smoothing = tuple(float(s) for s in smoothing)
-    max_steps = ft.integer("max_steps", 200, minimum=1)
+    max_steps = ft.integer("max_steps", 200, minimum=1, maximum=MAX_STEPS)
     method = ft.string("method", ("levenberg_marquardt", "trust_region"), "levenberg_marquardt")
     targets = ft.data.get("targets")
     if targets is not None:
@@ -911,13 +934,45 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         if lacking:
             raise ft.error(f"no weight for the target channel {lacking[0]!r}", "weights")
 
+    # data options
+    dtab = _Table(source, "data", raw.get("data", {}), _DATA_KEYS)
+    if "kind" in dtab.data:
+        raise dtab.error(f"unknown key 'kind'; allowed keys: {', '.join(_DATA_KEYS)}", "kind")
+    data: dict[str, Any] = {}
+    for key, example in (("units", '{displacement = "um"}'), ("columns", '{u = "v_in", y = "displacement"}')):
+        value = dtab.data.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, Mapping):
+            raise dtab.error(f"must be a table, e.g. {example}, got {value!r}", key)
+        (parse_units if key == "units" else parse_columns)(value, f"{source}: [data] {key}")
+        data[key] = {str(k): v for k, v in value.items()}
+    if "group" in dtab.data:
+        if not isinstance(dtab.data["group"], str) or not dtab.data["group"]:
+            raise dtab.error(f"must be the name of an HDF5 group (or .mat struct), got {dtab.data['group']!r}", "group")
+        data["group"] = dtab.data["group"]
+    fs = dtab.number("sample_rate", None, positive=True)
+    if fs is not None:
+        data["sample_rate"] = fs
+    if "ignore_extra" in dtab.data:
+        if not isinstance(dtab.data["ignore_extra"], bool):
+            raise dtab.error(f"must be true or false, got {dtab.data['ignore_extra']!r}", "ignore_extra")
+        data["ignore_extra"] = dtab.data["ignore_extra"]
+
     cfg = ModelConfig(
         text=text, source=source, hysteresis=h_kind, hysteresis_options=ho, creep=c_kind, creep_options=co,
         dynamics_order=order, dynamics_options=do, charge=charge, observer=observer, free=free, weights=weights,
-        smoothing=smoothing, max_steps=max_steps, targets=targets, method=method,
+        smoothing=smoothing, max_steps=max_steps, targets=targets, method=method, data=data,
     )
     if ho.get("smoothing", 0.0) != 0 and h_kind == "bouc_wen" and cfg._bouc_wen_method() != "rk4":
         raise ht.error("smoothing needs method = 'rk4'", "smoothing")
+    if free is not None:
+        from ._problem import _matches, parameter_paths
+
+        paths = list(parameter_paths(cfg.build(None)))
+        for sel in free:
+            if not any(_matches(p, sel) for p in paths):
+                raise ft.error(f"unknown parameter path {sel!r}; the model's parameters: {', '.join(paths)}", "free")
     return cfg
 
 

@@ -10,6 +10,7 @@ import ctypes
 import json
 import math
 import os
+import re
 import shutil
 import stat
 import tempfile
@@ -22,10 +23,111 @@ import numpy as np
 from piezojax._checks import PiezojaxValueError
 
 _TMP_TAG = ".tmp-"
+MARKER = ".piezojax"
+"""Name of the marker file `atomic_directory(..., kind=...)` writes into a folder, so that a later `overwrite` can
+recognise a previous output of the same kind (and refuses to replace anything else)."""
+
+_TEMP_PID = re.compile(re.escape(_TMP_TAG) + r"(\d+)-")
 
 
 def _describe_os_error(e: OSError) -> str:
     return e.strerror or str(e)
+
+
+def _temp_prefix(name: str) -> str:
+    # The owner's process id is part of every temporary name: the next run can tell a leftover of a killed run
+    # (owner gone: removed) from the output of a run still in progress (owner alive: refused).
+    return f".{name}{_TMP_TAG}{os.getpid()}-"
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. EPERM: it exists, owned by someone else
+        return True
+    return True
+
+
+def _temporaries(p: Path) -> list[tuple[Path, int]]:
+    """The temporary siblings of `p` written by `atomic_directory`/`atomic_file`, with their owners' process ids."""
+    try:
+        entries = list(os.scandir(p.parent))
+    except OSError:
+        return []
+    prefixes = {f".{p.name}{_TMP_TAG}", f".{p.stem}{_TMP_TAG}"}
+    out = []
+    for entry in entries:
+        if not any(entry.name.startswith(prefix) for prefix in prefixes):
+            continue
+        m = _TEMP_PID.search(entry.name)
+        if m:
+            out.append((Path(entry.path), int(m.group(1))))
+    return out
+
+
+def _claim(p: Path) -> None:
+    """Remove the temporaries of killed runs next to `p`; refuse if another live process is writing `p` now."""
+    for tmp, pid in _temporaries(p):
+        if pid == os.getpid():
+            continue
+        if _process_alive(pid):
+            raise PiezojaxValueError(
+                f"another process (pid {pid}) is writing {str(p)!r} right now (its temporary {tmp.name!r} exists); "
+                "wait for it to finish or choose another output"
+            )
+        if tmp.is_dir() and not tmp.is_symlink():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+
+def _protected(p: Path) -> str | None:
+    """Why the directory `p` must never be replaced (the working directory, one of its ancestors, the home
+    directory), or None."""
+    try:
+        rp, cwd = p.resolve(), Path.cwd().resolve()
+    except OSError:
+        return None
+    if rp == cwd:
+        return "it is the working directory"
+    if rp in cwd.parents:
+        return "it contains the working directory"
+    with contextlib.suppress(RuntimeError, OSError):
+        if rp == Path.home().resolve():
+            return "it is the home directory"
+    return None
+
+
+def read_marker(path: str | os.PathLike) -> str | None:
+    """The kind of output recorded in the marker of the folder `path` (`"fit"`, `"predict"`, ...), or None if it has
+    no readable marker (not written by piezojax, or by a version before markers)."""
+    f = Path(os.fspath(path)) / MARKER
+    try:
+        data = json.loads(f.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    kind = data.get("kind") if isinstance(data, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
+def _check_name_length(p: Path) -> None:
+    try:
+        limit = os.pathconf(p.parent, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    # the temporary sibling adds a dot, the tag, the process id and 8 random characters
+    room = limit - len(f".{_TMP_TAG}{os.getpid()}-") - 12
+    n = len(os.fsencode(p.name))
+    if n > room:
+        raise PiezojaxValueError(
+            f"cannot write {str(p)!r}: its name is {n} bytes long; this file system allows names of {limit} bytes, "
+            f"and the temporary file beside it needs {limit - room} more, so use at most {room}"
+        )
 
 
 def check_writable(path: str | os.PathLike) -> Path:
@@ -48,14 +150,17 @@ def check_writable(path: str | os.PathLike) -> Path:
     out = check_writable("results/fit.json")  # fails now, not after an hour of fitting
     ```
     """
+    if not os.fspath(path):
+        raise PiezojaxValueError("the output path is empty")
     p = Path(os.fspath(path)).expanduser().absolute()
     parent = p.parent
     if not parent.exists():
         raise PiezojaxValueError(f"cannot write {str(p)!r}: directory {str(parent)!r} does not exist")
     if not parent.is_dir():
         raise PiezojaxValueError(f"cannot write {str(p)!r}: {str(parent)!r} is not a directory")
+    _check_name_length(p)
     try:
-        fd, probe = tempfile.mkstemp(dir=parent, prefix=f".{p.name}{_TMP_TAG}probe-")
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=f".{p.name[:64]}{_TMP_TAG}probe-")
     except OSError as e:
         raise PiezojaxValueError(
             f"cannot write {str(p)!r}: directory {str(parent)!r} is not writable ({_describe_os_error(e)})"
@@ -125,7 +230,8 @@ def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
     p = check_writable(path)
     if p.is_dir():
         raise PiezojaxValueError(f"cannot write file {str(p)!r}: a directory of that name exists")
-    fd, tmp_name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.stem}{_TMP_TAG}", suffix=p.suffix)
+    _claim(p)
+    fd, tmp_name = tempfile.mkstemp(dir=p.parent, prefix=_temp_prefix(p.stem), suffix=p.suffix)
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -211,20 +317,28 @@ def _exchange(a: Path, b: Path) -> bool:
 
 
 @contextlib.contextmanager
-def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str | None = None) -> Iterator[Path]:
     """Context manager yielding a temporary sibling directory that becomes `path` on normal exit.
 
     Write every output file of a run into the yielded directory. On normal exit it is renamed to `path`. If `path`
     already exists, that is an error (raised on entry, before any work) unless `overwrite=True`; then the two are
     swapped — atomically with `renameat2(RENAME_EXCHANGE)` on Linux, otherwise by two renames with the old directory
-    parked at a hidden sibling `.NAME.tmp-old-*` in between — so at every instant at least one complete version
-    exists on disk, and the old one is deleted only after the new one is in place. On any exception (including
-    `KeyboardInterrupt`) the temporary directory is removed and `path` is left as it was.
+    parked at a hidden sibling in between — so at every instant at least one complete version exists on disk, and the
+    old one is deleted only after the new one is in place. On any exception (including `KeyboardInterrupt`) the
+    temporary directory is removed and `path` is left as it was.
+
+    Never replaced, whatever `overwrite` says: the working directory, a directory containing it, and the home
+    directory. With `kind`, the new folder gets a marker file (`MARKER`) recording it, and `overwrite` replaces only
+    a folder whose marker records the same `kind` (a previous output of the same command), never anything else.
+    Temporaries left by killed runs next to `path` are removed on entry; if a live process is writing `path`, entry
+    fails.
 
     **Arguments:**
 
     - `path`: the output directory to create or replace.
     - `overwrite`: allow replacing an existing directory at `path`.
+    - `kind`: what the folder holds (e.g. `"fit"`), for the marker; `None`: no marker, and `overwrite` may replace
+      any directory that is not protected.
 
     **Returns:**
 
@@ -236,34 +350,43 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterat
     ```
     """
     p = check_writable(path)
-    if p.exists() and not p.is_dir():
-        raise PiezojaxValueError(f"cannot create directory {str(p)!r}: a file of that name exists")
-    if p.exists() and not overwrite:
-        raise PiezojaxValueError(f"output directory {str(p)!r} already exists; pass overwrite=True to replace it")
-    tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_TMP_TAG}"))
+    _check_replaceable_directory(p, overwrite, kind)
+    _claim(p)
+    tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=_temp_prefix(p.name)))
     try:
         # mkdtemp makes 0700 directories; give the result the mode a plain mkdir would.
         os.chmod(tmp, 0o777 & ~_umask())
         yield tmp
+        if kind is not None:
+            from piezojax import __version__
+
+            save_json(tmp / MARKER, {"written_by": "piezojax", "kind": kind, "version": __version__})
         if p.exists() and not p.is_dir():
-            raise PiezojaxValueError(f"cannot create directory {str(p)!r}: a file of that name exists")
+            raise PiezojaxValueError(
+                f"cannot create directory {str(p)!r}: a file of that name was created by another program while this "
+                "run was computing; nothing was replaced and this run's outputs were discarded"
+            )
         if not p.exists():
             try:
                 os.rename(tmp, p)
             except OSError as e:
-                raise PiezojaxValueError(
-                    f"cannot create directory {str(p)!r}: {_describe_os_error(e)}"
-                    + ("; it appeared while the run was being written" if p.exists() else "")
-                ) from e
+                if p.exists():
+                    raise PiezojaxValueError(
+                        f"output directory {str(p)!r} was created by another program while this run was computing; "
+                        "nothing was replaced and this run's outputs were discarded"
+                    ) from e
+                raise PiezojaxValueError(f"cannot create directory {str(p)!r}: {_describe_os_error(e)}") from e
         elif not overwrite:
             raise PiezojaxValueError(
-                f"output directory {str(p)!r} appeared while the run was being written; pass overwrite=True"
+                f"output directory {str(p)!r} was created by another program while this run was computing; nothing "
+                "was replaced and this run's outputs were discarded"
             )
         else:
+            _check_replaceable_directory(p, overwrite, kind)  # what appeared meanwhile must qualify too
             if _exchange(tmp, p):
                 old = tmp  # after the exchange the temporary name holds the old directory
             else:
-                old = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_TMP_TAG}old-"))
+                old = Path(tempfile.mkdtemp(dir=p.parent, prefix=_temp_prefix(p.name) + "old-"))
                 os.rmdir(old)
                 os.rename(p, old)
                 try:
@@ -278,6 +401,28 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False) -> Iterat
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     _fsync_directory(p.parent)
+
+
+def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None) -> None:
+    """Refuse, before any work, an output directory that must not be created or replaced (see
+    `atomic_directory`)."""
+    why = _protected(p)
+    if why is not None:
+        raise PiezojaxValueError(f"refusing to write the output folder {str(p)!r}: {why}")
+    if not p.exists():
+        return
+    if not p.is_dir():
+        raise PiezojaxValueError(f"cannot create directory {str(p)!r}: a file of that name exists")
+    if not overwrite:
+        raise PiezojaxValueError(f"output directory {str(p)!r} already exists; pass overwrite=True to replace it")
+    if kind is not None:
+        found = read_marker(p)
+        if found != kind:
+            what = "has no piezojax marker" if found is None else f"holds the output of {found!r}"
+            raise PiezojaxValueError(
+                f"refusing to replace {str(p)!r}: it {what}, and overwriting replaces only a previous {kind!r} output "
+                f"(a folder with the marker file {MARKER!r}); remove it yourself or choose another output folder"
+            )
 
 
 def to_jsonable(obj: Any, _where: str = "obj") -> Any:

@@ -97,7 +97,7 @@ class FitResult:
             "condition": self.condition,
             "gradient_cosine": self.gradient_cosine,
             "parameters": {
-                n: {"value": float(v), "std_error": float(s)}
+                n: {"value": float(v), "std_error": float(s), "std_error_status": _std_error_status(s)}
                 for n, v, s in zip(self.parameter_names, self.values, self.std_errors)
             },
             "correlation": np.asarray(self.correlation).tolist(),
@@ -156,22 +156,42 @@ class FitResult:
 
     def save(self, path, overwrite: bool = False, figures: bool = True, extra: dict | None = None) -> Path:
         """Write `path/` atomically: `model.eqx` (equinox serialisation of `params`), `result.json` (summary plus
-        `extra`), `report.txt` and, with `figures=True`, PNG figures. Nothing appears at `path` unless all succeed."""
-        from ._io import atomic_directory, save_json
+        `extra`), `report.txt` and, with `figures=True`, PNG figures. Nothing appears at `path` unless all succeed.
+
+        `overwrite=True` replaces only a folder written by an earlier `save` (or `piezojax fit`), recognised by its
+        marker file; never the working directory or a folder containing it."""
+        from ._io import atomic_directory
 
         path = Path(path)
-        with atomic_directory(path, overwrite=overwrite) as tmp:
-            eqx.tree_serialise_leaves(tmp / "model.eqx", self.params)
-            summary = self.summary()
-            if extra:
-                summary.update(extra)
-            save_json(tmp / "result.json", summary)
-            (tmp / "report.txt").write_text(self.report() + "\n")
-            if figures:
-                from ._plots import plot_result
-
-                plot_result(self, tmp)
+        with atomic_directory(path, overwrite=overwrite, kind="fit") as tmp:
+            self.write_files(tmp, figures=figures, extra=extra)
         return path
+
+    def write_files(self, folder, figures: bool = True, extra: dict | None = None) -> None:
+        """Write the files of `save` into the existing folder `folder` (not atomically: for a caller that writes
+        into a temporary folder of its own)."""
+        from ._io import save_json
+
+        folder = Path(folder)
+        eqx.tree_serialise_leaves(folder / "model.eqx", self.params)
+        summary = self.summary()
+        if extra:
+            summary.update(extra)
+        save_json(folder / "result.json", summary)
+        (folder / "report.txt").write_text(self.report() + "\n")
+        if figures:
+            from ._plots import plot_result
+
+            plot_result(self, folder)
+
+
+def _std_error_status(s) -> str:
+    """How to read a standard error in `result.json`, where JSON can hold neither inf nor NaN (both are `null`):
+    `"finite"`, `"infinite"` (the data do not determine the parameter) or `"not computed"` (no finite Jacobian)."""
+    s = float(s)
+    if np.isfinite(s):
+        return "finite"
+    return "infinite" if np.isinf(s) else "not computed"
 
 
 def load_model(path, like):

@@ -1,17 +1,29 @@
 """The `piezojax` command line: fit a model configured in TOML to data files, predict with it, simulate.
 
 Exit status: 0 success; 1 `fit` finished without converging (outputs written, `result.json` says why); 2 bad input
-(one line `piezojax: error: ...` on stderr, nothing written); 130 interrupted by Ctrl-C (nothing half-written: an
-interrupted `fit` saves the last accepted parameters as a complete folder, or nothing if it was interrupted before
-the first step).
+(one line `piezojax: error: ...` on stderr, nothing written); 3 internal error (a bug: one line, nothing written);
+130 interrupted by Ctrl-C (SIGINT), 143 terminated (SIGTERM) — nothing half-written: an interrupted `fit` saves the
+last accepted parameters as a complete folder, or nothing if it was interrupted before the first step or while its
+outputs were being written.
+
+Only argparse and the standard library are imported at module level: the signal handlers are installed before
+JAX is loaded, so an interrupt during the imports is handled like any other.
 """
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_ERROR, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_NOT_CONVERGED, EXIT_ERROR, EXIT_INTERNAL = 0, 1, 2, 3
+EXIT_INTERRUPTED, EXIT_TERMINATED = 128 + signal.SIGINT, 128 + signal.SIGTERM
+MIN_FIT_SAMPLES = 20
+"""Fewest samples per record that `piezojax fit` accepts (the data-driven initial values need a few periods of
+the slowest block)."""
 
 _CONFIG_HELP = """\
 CONFIG is a TOML file naming the model blocks, optional initial values, and the fit options:
@@ -34,9 +46,14 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
                 max_steps = 200;  targets = ["displacement", ...] (default: predicted channels in the data)
                 method = "levenberg_marquardt" | "trust_region"   (scipy's TRF algorithm; see fitting.solve)
 
+  [data]        units = {displacement = "um", v_in = "mV", t = "ms"}   (columns not in SI; also --units)
+                columns = {u = "v_in", y = "displacement"}   (rename; {2 = "t", ...} by position without a header)
+                group = "multisine" (HDF5);  sample_rate = 750.0 [Hz] (files without t);  ignore_extra = false
+
+Sizes: plays, elements <= 100; creep order <= 10; Bouc-Wen substeps <= 64; max_steps <= 100000.
 Parameter values not given in CONFIG start from the data (`fit`), see the README ("Command line").
 Data files: .csv (header naming t, v_in and any of v_out, displacement, force, charge, current), .npz, .h5/.hdf5,
-.mat with the same names; SI units; uniform t.
+.mat with the same names; SI units unless declared; uniform t in seconds.
 """
 
 _FIT_EXAMPLES = """\
@@ -47,7 +64,10 @@ examples:
 DIR receives result.json (metrics per experiment and channel, parameters with standard errors, convergence),
 model.eqx (the fitted parameters), config.toml (the configuration, to rebuild the model), report.txt and PNG
 figures. DIR appears complete or not at all.
-exit status: 0 converged, 1 not converged (outputs written), 2 bad input, 130 interrupted.
+--overwrite replaces only a folder written by an earlier `piezojax fit` (it holds a .piezojax marker), never the
+working directory, a folder holding an input or CONFIG, or anything else.
+exit status: 0 converged, 1 not converged (outputs written), 2 bad input, 3 internal error, 130 interrupted
+(143 terminated).
 """
 
 _PREDICT_EXAMPLES = """\
@@ -76,6 +96,29 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_ERROR, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("piezojax")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree that is not installed
+        return "unknown"
+
+
+def _data_options(parser, source: str) -> None:
+    """The options that say how to read the data files (each overrides the `[data]` key of `source`)."""
+    parser.add_argument("--units", metavar="COL=UNIT", action="append",
+                        help="units of columns not in SI, COLUMN=UNIT[,...] (e.g. displacement=um,v_in=mV,t=ms; "
+                        f"prefixes k, m, u, n, p); overrides [data] units of {source}")
+    parser.add_argument("--columns", metavar="FILECOL=COL", action="append",
+                        help="rename file columns, FILECOL=COL[,...] (e.g. u=v_in,y=displacement); for a CSV file "
+                        f"without a header, FILECOL is a 1-based position (2=t,3=displacement,4=v_in); overrides "
+                        f"[data] columns of {source}")
+    parser.add_argument("--group", metavar="NAME", help="HDF5 group (or .mat struct) holding the columns")
+    parser.add_argument("--sample-rate", metavar="HZ", type=float, help="sampling rate of files without a t column")
+    parser.add_argument("--ignore-extra", action="store_true", help="skip columns that are not t, v_in or a channel")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `piezojax` argument parser (subcommands `fit`, `predict`, `simulate`)."""
     fmt = argparse.RawDescriptionHelpFormatter
@@ -86,9 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Run `piezojax COMMAND --help` for each command's options and examples.",
         formatter_class=fmt,
     )
-    from piezojax import __version__
-
-    parser.add_argument("--version", action="version", version=f"piezojax {__version__}")
+    parser.add_argument("--version", action="version", version=f"piezojax {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
@@ -101,9 +142,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("config", metavar="CONFIG", help="TOML model configuration")
     fit.add_argument("data", metavar="DATA", nargs="+", help="experiment files (.csv, .npz, .h5/.hdf5, .mat)")
     fit.add_argument("--out", metavar="DIR", required=True, help="result folder to create (must not exist)")
-    fit.add_argument("--overwrite", action="store_true", help="replace DIR if it exists (atomically)")
+    fit.add_argument("--overwrite", action="store_true",
+                     help="replace DIR if it is the output of an earlier `piezojax fit` (atomically)")
     fit.add_argument("--max-steps", type=int, metavar="N", help="Levenberg–Marquardt steps per smoothing level "
                      "(overrides [fit] max_steps)")
+    _data_options(fit, "CONFIG")
     fit.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
     fit.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -115,7 +158,9 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("model_dir", metavar="DIR", help="result folder written by `piezojax fit`")
     pred.add_argument("data", metavar="DATA", nargs="+", help="input files (t, v_in; v_out for an observer)")
     pred.add_argument("--out", metavar="OUT", required=True, help="folder to create for the predictions")
-    pred.add_argument("--overwrite", action="store_true", help="replace OUT if it exists (atomically)")
+    pred.add_argument("--overwrite", action="store_true",
+                      help="replace OUT if it is the output of an earlier `piezojax predict` (atomically)")
+    _data_options(pred, "the fit (default: the fit's)")
 
     sim = sub.add_parser(
         "simulate", help="forward simulation of the model of CONFIG with its given parameter values",
@@ -126,43 +171,325 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("config", metavar="CONFIG", help="TOML model configuration with every parameter value")
     sim.add_argument("--input", metavar="FILE", required=True, help="input file (t, v_in; v_out for an observer)")
     sim.add_argument("--out", metavar="OUT", required=True, help="output file (.csv, .npz, .h5, .mat)")
-    sim.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    sim.add_argument("--overwrite", action="store_true",
+                     help="replace OUT if it was written by an earlier `piezojax simulate`")
+    _data_options(sim, "CONFIG")
     return parser
+
+
+# ------------------------------------------------------------------------------------------------------ signals
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM, raised in the main thread like Ctrl-C's `KeyboardInterrupt`, so that every cleanup path
+    (temporary outputs removed, the solver's saving of the last accepted parameters) runs for both."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+_received: list[int] = []
+_consumed = 0
+
+
+def _on_signal(signum, frame):
+    _received.append(signum)
+    raise Interrupted(signum)
+
+
+def _check_interrupted() -> None:
+    """Raise for a signal whose exception was swallowed on its way (Python drops exceptions raised inside
+    garbage-collector callbacks and `__del__`), so that no interrupt is ever lost: called before outputs are made
+    visible."""
+    if len(_received) > _consumed:
+        raise Interrupted(_received[-1])
+
+
+def _consume_interrupt() -> None:
+    """The interrupts so far were handled (the solver stopped and returned its last accepted point)."""
+    global _consumed
+    _consumed = len(_received)
+
+
+def _interrupt_status() -> int:
+    return 128 + (_received[-1] if _received else signal.SIGINT)
+
+
+@contextlib.contextmanager
+def _signals_handled(restore: bool = True):
+    """SIGINT and SIGTERM raise `Interrupted` while the command runs (main thread only); the previous handlers are
+    restored after it unless `restore` is False (the console script replaces them itself, see `console_main`)."""
+    global _consumed
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _received.clear()
+    _consumed = 0
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    old_hook = sys.unraisablehook
+
+    def hook(unraisable):
+        # An interrupt raised inside a garbage-collector callback or `__del__` cannot propagate; Python would print
+        # it with a traceback and go on. It is recorded in `_received`, and `_check_interrupted` raises it again
+        # before any output is made visible.
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        old_hook(unraisable)
+
+    sys.unraisablehook = hook
+    for s in old:
+        signal.signal(s, _on_signal)
+    try:
+        yield
+    finally:
+        if restore:
+            for s, h in old.items():
+                signal.signal(s, h)
+            sys.unraisablehook = old_hook
+
+
+def _record_signal(signum, frame):
+    _received.append(signum)
+
+
+def _hold_signals() -> None:
+    """From here on SIGINT and SIGTERM are only recorded, never raised: called once the outputs are about to be made
+    visible (the command's outcome is decided), and by the console script before the interpreter's teardown (where a
+    raised interrupt would print a traceback from an `atexit` callback). `_signals_handled` restores the previous
+    handlers when the command returns in-process."""
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, _record_signal)
 
 
 # ------------------------------------------------------------------------------------------------------ helpers
 
 
-def _setup_jax() -> None:
-    """x64 and fused CPU scans, before JAX initialises its backends (a no-op for the flag afterwards)."""
-    import jax
+@contextlib.contextmanager
+def _signals_deferred():
+    """Hold SIGINT and SIGTERM back (delivered when the block ends) while compiled extensions are imported: an
+    interrupt inside an extension's initialisation becomes an `ImportError` with a traceback printed from C."""
+    signals = {signal.SIGINT, signal.SIGTERM}
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
-    import piezojax as pj
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        pj.enable_fast_cpu_scans()
-    jax.config.update("jax_enable_x64", True)
+def _setup_jax(figures: bool = False) -> None:
+    """Import JAX, piezojax (and matplotlib for `figures`) with interrupts deferred; x64 and fused CPU scans, set
+    before JAX initialises its backends."""
+    with _signals_deferred():
+        import jax
+
+        import piezojax as pj
+
+        if figures:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot  # noqa: F401
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pj.enable_fast_cpu_scans()
+        jax.config.update("jax_enable_x64", True)
 
 
 def _info(msg: str, quiet: bool = False) -> None:
     if not quiet:
-        print(f"piezojax: {msg}", file=sys.stderr, flush=True)
+        with contextlib.suppress(BrokenPipeError):
+            print(f"piezojax: {msg}", file=sys.stderr, flush=True)
 
 
-def _check_new_output(path: str, overwrite: bool, what: str) -> Path:
-    """Fail now, not after the work, if `path` cannot be written."""
-    import fitting
+def _out(text: str) -> None:
+    """Print to stdout; a closed pipe (`piezojax fit ... | head -1`) silences stdout instead of failing: the
+    outputs are written and the exit status stays that of the command."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        _silence_stdout()
+
+
+def _silence_stdout() -> None:
+    with contextlib.suppress(OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+
+
+def _error(msg: str):
     from piezojax._checks import PiezojaxValueError
 
+    return PiezojaxValueError(msg)
+
+
+def _pairs(items: list[str] | None, option: str, example: str) -> dict[str, str]:
+    """`--units displacement=um,t=ms` (repeatable) as a mapping."""
+    out: dict[str, str] = {}
+    for item in items or []:
+        for part in item.split(","):
+            key, sep, value = part.partition("=")
+            if not sep or not key.strip() or not value.strip():
+                raise _error(f"{option}: expected {example}, got {part.strip()!r}")
+            out[key.strip()] = value.strip()
+    return out
+
+
+def _data_settings(args, base: dict) -> dict:
+    """How to read the data files: `base` (CONFIG's `[data]`, or the fit's for `predict`) with the command line's
+    options on top; checked here, so that a bad option is named before any file is read."""
+    from ._data import parse_columns, parse_units
+
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+    units = _pairs(args.units, "--units", "COLUMN=UNIT (e.g. displacement=um)")
+    columns = _pairs(args.columns, "--columns", "FILECOLUMN=COLUMN (e.g. u=v_in)")
+    parse_units(units, "--units")
+    parse_columns(columns, "--columns")
+    if units:
+        out["units"] = {**out.get("units", {}), **units}
+    if columns:
+        out["columns"] = {**out.get("columns", {}), **columns}
+    if args.group is not None:
+        out["group"] = args.group
+    if args.sample_rate is not None:
+        if not (args.sample_rate > 0 and args.sample_rate < float("inf")):
+            raise _error(f"--sample-rate must be a positive number of Hz, got {args.sample_rate}")
+        out["sample_rate"] = args.sample_rate
+    if args.ignore_extra:
+        out["ignore_extra"] = True
+    return out
+
+
+def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_folder=None) -> Path:
+    """Refuse now, before any work, an output that must not be written: an empty path, the working directory or
+    an ancestor of it, a folder holding an input (data, CONFIG, the fit folder of `predict`), the input file
+    itself, an existing output without `--overwrite`, and with `--overwrite` anything but an earlier output of the
+    same command (recognised by its marker)."""
+    import fitting
+
+    from ._data import SUPPORTED_SUFFIXES, read_file_marker
+    from ._io import MARKER, _protected, read_marker
+
+    is_file = command == "simulate"
+    what = "output file" if is_file else "output folder"
+    if not path.strip():
+        raise _error(f"--out is empty; name the {what}")
+    if is_file and Path(path).suffix.lower() not in SUPPORTED_SUFFIXES:
+        raise _error(f"{what} {path!r}: unsupported suffix {Path(path).suffix!r}; its suffix picks the format, one "
+                     f"of {', '.join(SUPPORTED_SUFFIXES)}")
     p = fitting.check_writable(path)
-    if p.exists() and not overwrite:
-        raise PiezojaxValueError(f"{what} {str(p)!r} already exists; pass --overwrite to replace it")
-    if what == "output folder" and p.exists() and not p.is_dir():
-        raise PiezojaxValueError(f"{what} {str(p)!r} is a file")
-    if what == "output file" and p.is_dir():
-        raise PiezojaxValueError(f"{what} {str(p)!r} is a directory")
+    rp = p.resolve()
+    for f in inputs:
+        rf = Path(f).expanduser().resolve()
+        if rp == rf:
+            raise _error(f"refusing to write the {what} {str(p)!r}: it is the input {str(f)!r}")
+        if not is_file and rp in rf.parents:
+            raise _error(f"refusing to write the {what} {str(p)!r}: it holds the input {str(f)!r}")
+    if fit_folder is not None:
+        rd = Path(fit_folder).expanduser().resolve()
+        if rp == rd or rp in rd.parents:
+            raise _error(f"refusing to write the {what} {str(p)!r}: it {'is' if rp == rd else 'holds'} the fitted "
+                         f"model folder {str(fit_folder)!r}")
+    if not is_file:
+        why = _protected(p)
+        if why is not None:
+            raise _error(f"refusing to write the {what} {str(p)!r}: {why}")
+    if not p.exists():
+        return p
+    if not overwrite:
+        raise _error(f"{what} {str(p)!r} already exists; pass --overwrite to replace it")
+    if is_file:
+        if p.is_dir():
+            raise _error(f"{what} {str(p)!r} is a directory")
+        if read_file_marker(p) != command:
+            raise _error(f"refusing to replace {str(p)!r}: it was not written by `piezojax {command}`, and "
+                         "--overwrite replaces only such a file; remove it yourself or choose another --out")
+    else:
+        if not p.is_dir():
+            raise _error(f"{what} {str(p)!r} is a file")
+        found = read_marker(p)
+        if found != command:
+            held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
+            raise _error(f"refusing to replace {str(p)!r}: it {held}, and --overwrite replaces only the output of an "
+                         f"earlier `piezojax {command}` (a folder with the marker file {MARKER}); remove it yourself "
+                         "or choose another --out")
     return p
+
+
+def _load_data(paths, settings: dict):
+    """The `Dataset` of `paths` read with `settings` (`fitting.load_experiment`'s keywords); unit-plausibility
+    warnings on stderr, and returned for the result files."""
+    import fitting
+
+    from ._data import UnitWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UnitWarning)
+        dataset = fitting.Dataset.from_files(paths, **settings)
+    messages = [str(w.message) for w in caught if issubclass(w.category, UnitWarning)]
+    for m in messages:
+        _info(f"warning: {m}")  # also with --quiet: it may mean the fit is meaningless
+    return dataset, messages
+
+
+def _check_fit_data(dataset, targets) -> None:
+    """Data problems that would otherwise surface deep inside the initialisation, named by file and column."""
+    short = [e for e in dataset if e.n < MIN_FIT_SAMPLES]
+    if short:
+        e = short[0]
+        raise _error(f"{e._label()} has {e.n} samples; `piezojax fit` needs at least {MIN_FIT_SAMPLES} per record")
+    import numpy as np
+
+    for c in targets:
+        having = [e for e in dataset if e.has(c)]
+        if having and all(np.ptp(e[c]) == 0 for e in having):
+            files = ", ".join(repr(e.source or e.name) for e in having[:3])
+            raise _error(f"column {c!r} is constant in every data file that has it ({files}"
+                         f"{', …' if len(having) > 3 else ''}): there is nothing to fit")
+    if all(not np.any(e.v_in) for e in dataset):
+        raise _error("column 'v_in' is zero in every data file: no model can be identified from no excitation")
+
+
+def _memory_estimate(config, dataset, num_free: int) -> int:
+    """Bytes the fit is expected to need at its peak: one record's forward-mode Jacobian with its intermediates
+    (the solver forms it one record at a time on CPU), times the Bouc–Wen RK4 substeps."""
+    n = max(e.n for e in dataset)
+    channels = max(1, len(config.outputs))
+    sub = config.hysteresis_options.get("substeps", 8) if config.hysteresis == "bouc_wen" else 1
+    return 8 * n * channels * (num_free + 1) * 8 * max(1, sub // 4) + 200 * 2**20
+
+
+def _num_free(model, free) -> int:
+    """Number of free scalar parameters of `model` for the `free` paths."""
+    import jax.tree_util as jtu
+    import numpy as np
+
+    from ._problem import free_mask
+
+    mask, leaves = jtu.tree_leaves(free_mask(model, free)), jtu.tree_leaves(model)
+    return sum(int(np.size(x)) for m, x in zip(mask, leaves) if m is True)
+
+
+def _physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):  # pragma: no cover - not POSIX
+        return None
+
+
+def _check_memory(config, dataset, num_free: int) -> None:
+    need, have = _memory_estimate(config, dataset, num_free), _physical_memory()
+    if have is not None and need > 0.8 * have:
+        n = max(e.n for e in dataset)
+        raise _error(f"the fit would need about {need / 2**30:.1f} GiB ({n} samples in the longest record x "
+                     f"{num_free} free parameters), more than 80 % of this machine's {have / 2**30:.1f} GiB; "
+                     "resample the records, split long ones, or fit fewer parameters")
 
 
 def _experiment_arrays(exp, inputs):
@@ -181,18 +508,16 @@ def _run_model(config, model, exp) -> dict:
     import equinox as eqx
     import numpy as np
 
-    from piezojax._checks import PiezojaxValueError
-
     predictor = config.predictor()
     missing = [c for c in config.inputs if not exp.has(c)]
     if missing:
-        raise PiezojaxValueError(
+        raise _error(
             f"experiment {exp.name!r} (file {exp.source!r}) lacks the column(s) {missing} the model reads as input")
     out = eqx.filter_jit(lambda p, m, d: p(m, d))(predictor, model, _experiment_arrays(exp, config.inputs))
     preds = {c: np.asarray(out[c]) for c in config.outputs}
     bad = [c for c, y in preds.items() if not np.all(np.isfinite(y))]
     if bad:
-        raise PiezojaxValueError(f"experiment {exp.name!r}: the model's {bad[0]!r} is not finite")
+        raise _error(f"experiment {exp.name!r}: the model's {bad[0]!r} is not finite")
     return preds
 
 
@@ -210,49 +535,57 @@ def _cmd_fit(args) -> int:
     from ._config import load_config
 
     quiet = args.quiet
-    out = _check_new_output(args.out, args.overwrite, "output folder")
-    config = load_config(args.config)
     if args.max_steps is not None and args.max_steps < 1:
-        from piezojax._checks import PiezojaxValueError
-
-        raise PiezojaxValueError(f"--max-steps must be >= 1, got {args.max_steps}")
-    dataset = fitting.Dataset.from_files(args.data)
-    targets = config.fit_targets(dataset)
-    for c in config.inputs:
-        dataset.require(c)
-    _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}", quiet)
-    _info("initial values from the data", quiet)
-    params = config.build(dataset)
-    free = config.fit_free(targets)
-    max_steps = args.max_steps if args.max_steps is not None else config.max_steps
-    what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
-    _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
-    result = fitting.fit(
-        params, dataset, predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
-        smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method,
-    )
-    extra = {
-        "cli": {
-            "command": "fit",
-            "config": "config.toml",
-            "config_source": str(Path(args.config).absolute()),
-            "data": [str(Path(p).absolute()) for p in args.data],
-            "experiments": list(dataset.names),
-            "targets": list(targets),
-            "free": free,
-            "weights": result.problem.weights,
-            "outputs": list(config.outputs),
-            "piezojax_version": pj.__version__,
+        raise _error(f"--max-steps must be >= 1, got {args.max_steps}")
+    out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
+    config = load_config(args.config)
+    settings = _data_settings(args, config.data)
+    with fitting.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
+        dataset, unit_warnings = _load_data(args.data, settings)
+        targets = config.fit_targets(dataset)
+        for c in config.inputs:
+            dataset.require(c)
+        _check_fit_data(dataset, targets)
+        free = config.fit_free(targets)
+        _check_memory(config, dataset, _num_free(config.build(None), free))
+        _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}",
+              quiet)
+        _info("initial values from the data", quiet)
+        params = config.build(dataset)
+        max_steps = args.max_steps if args.max_steps is not None else config.max_steps
+        what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
+        _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
+        result = fitting.fit(
+            params, dataset, predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
+            smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method,
+        )
+        if result.code == "interrupted":
+            _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
+        extra = {
+            "cli": {
+                "command": "fit",
+                "config": "config.toml",
+                "config_source": str(Path(args.config).absolute()),
+                "data": [str(Path(p).absolute()) for p in args.data],
+                "experiments": list(dataset.names),
+                "targets": list(targets),
+                "free": free,
+                "weights": result.problem.weights,
+                "outputs": list(config.outputs),
+                "data_settings": settings,
+                "piezojax_version": pj.__version__,
+            },
+            "warnings": unit_warnings,
         }
-    }
-    _info(f"writing {out}", quiet)
-    with fitting.atomic_directory(out, overwrite=args.overwrite) as tmp:
-        result.save(tmp, overwrite=True, figures=not args.no_figures, extra=extra)
+        _info(f"writing {out}", quiet)
+        result.write_files(tmp, figures=not args.no_figures, extra=extra)
         fitting.atomic_write_text(tmp / "config.toml", config.text)
-    print(result.report())
+        _check_interrupted()
+        _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
+    _out(result.report())
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
-        return EXIT_INTERRUPTED
+        return _interrupt_status()
     if not result.success:
         _info(f"the fit did not converge ({result.reason}); results written to {out}")
         return EXIT_NOT_CONVERGED
@@ -263,43 +596,55 @@ def load_fitted(model_dir) -> tuple:
     """`(config, model)` from a folder written by `piezojax fit`: the configuration saved there rebuilds the
     structure, `fitting.load_model` fills in the fitted values."""
     import fitting
-    from piezojax._checks import PiezojaxValueError
 
     from ._config import parse_config
 
     d = Path(model_dir)
     if not d.is_dir():
-        raise PiezojaxValueError(f"model folder {str(d)!r} does not exist or is not a folder")
+        raise _error(f"model folder {str(d)!r} does not exist or is not a folder")
     cfg_file = d / "config.toml"
     if not cfg_file.exists() or not (d / "model.eqx").exists():
-        raise PiezojaxValueError(f"{str(d)!r} is not a folder written by `piezojax fit` (no config.toml/model.eqx)")
+        raise _error(f"{str(d)!r} is not a folder written by `piezojax fit` (no config.toml/model.eqx)")
     config = parse_config(cfg_file.read_text(encoding="utf-8"), source=str(cfg_file))
     model = fitting.load_model(d, like=config.build(None))
     return config, model
 
 
+def _fit_data_settings(model_dir, config) -> dict:
+    """How the fit in `model_dir` read its files (CONFIG's `[data]` and the command line), for `predict`."""
+    import json
+
+    try:
+        cli = json.loads((Path(model_dir) / "result.json").read_text(encoding="utf-8")).get("cli", {})
+        settings = cli.get("data_settings")
+    except (OSError, ValueError, AttributeError):
+        settings = None
+    return dict(settings) if isinstance(settings, dict) else dict(config.data)
+
+
 def _cmd_predict(args) -> int:
     import fitting
 
-    out = _check_new_output(args.out, args.overwrite, "output folder")
+    out = _check_output(args.out, args.overwrite, "predict", inputs=args.data, fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
-    dataset = fitting.Dataset.from_files(args.data)
-    results, metrics = [], {}
-    for exp in dataset:
-        preds = _run_model(config, model, exp)
-        results.append((exp, preds))
-        measured = [c for c in preds if exp.has(c)]
-        if measured:
-            metrics[exp.name] = {c: fitting.error_metrics(preds[c], exp[c]) for c in measured}
-    names = {}
-    for exp, _ in results:
-        base = _safe_name(exp.name.replace("/", "__"))
-        name, i = base, 1
-        while name in names.values():
-            i += 1
-            name = f"{base}_{i}"
-        names[exp.name] = name
-    with fitting.atomic_directory(out, overwrite=args.overwrite) as tmp:
+    settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
+    with fitting.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
+        dataset, unit_warnings = _load_data(args.data, settings)
+        results, metrics = [], {}
+        for exp in dataset:
+            preds = _run_model(config, model, exp)
+            results.append((exp, preds))
+            measured = [c for c in preds if exp.has(c)]
+            if measured:
+                metrics[exp.name] = {c: fitting.error_metrics(preds[c], exp[c]) for c in measured}
+        names = {}
+        for exp, _ in results:
+            base = _safe_name(exp.name.replace("/", "__"))
+            name, i = base, 1
+            while name in names.values():
+                i += 1
+                name = f"{base}_{i}"
+            names[exp.name] = name
         for exp, preds in results:
             pred_exp = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
             fitting.save_experiment(pred_exp, tmp / f"{names[exp.name]}.csv")
@@ -307,12 +652,16 @@ def _cmd_predict(args) -> int:
             "model": str(Path(args.model_dir).absolute()),
             "files": {exp.name: {"input": exp.source, "output": f"{names[exp.name]}.csv"} for exp, _ in results},
             "metrics": metrics,
+            "data_settings": settings,
+            "warnings": unit_warnings,
         })
+        _check_interrupted()
+        _hold_signals()
     for exp, _ in results:
-        print(f"{exp.name}: {names[exp.name]}.csv")
+        _out(f"{exp.name}: {names[exp.name]}.csv")
         for c, m in metrics.get(exp.name, {}).items():
-            print(f"  {c:<13} RMSE {m['rmse']:.6e}  NRMSE {m['nrmse_percent']:.4f} %  "
-                  f"max {m['max_error_percent']:.4f} % of range")
+            _out(f"  {c:<13} RMSE {m['rmse']:.6e}  NRMSE {m['nrmse_percent']:.4f} %  "
+                 f"max {m['max_error_percent']:.4f} % of range")
     _info(f"wrote {len(results)} prediction file(s) to {out}")
     return EXIT_OK
 
@@ -323,12 +672,17 @@ def _cmd_simulate(args) -> int:
 
     from ._config import load_config
 
-    out = _check_new_output(args.out, args.overwrite, "output file")
+    out = _check_output(args.out, args.overwrite, "simulate", inputs=[args.input, args.config])
     config = load_config(args.config)
+    settings = _data_settings(args, config.data)
     model = pj.unwrap(config.build(None, require_values=True))
-    exp = fitting.load_experiment(args.input)
+    dataset, _ = _load_data([args.input], settings)
+    exp = dataset[0]
     preds = _run_model(config, model, exp)
-    fitting.save_experiment(fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds), out)
+    result = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
+    _check_interrupted()
+    _hold_signals()
+    fitting.save_experiment(result, out, marker="simulate")
     _info(f"wrote {', '.join(preds)} for {exp.n} samples to {out}")
     return EXIT_OK
 
@@ -341,41 +695,96 @@ def _one_line(e: BaseException) -> str:
     return msg or type(e).__name__
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the `piezojax` console script.
+def main(argv: list[str] | None = None, *, _restore_signals: bool = True) -> int:
+    """Entry point of the `piezojax` command (in-process; the console script is `console_main`).
 
     **Arguments:**
 
     - `argv`: the arguments (default `sys.argv[1:]`).
 
-    **Returns:** the exit status (0 success, 1 fit not converged, 2 bad input, 130 interrupted).
+    **Returns:** the exit status (0 success, 1 fit not converged, 2 bad input, 3 internal error, 130 interrupted by
+    SIGINT, 143 terminated by SIGTERM).
 
     ```python
     from fitting.cli import main
     main(["fit", "model.toml", "run1.csv", "--out", "fits/run1"])
     ```
     """
+    with _signals_handled(restore=_restore_signals):
+        try:
+            return _main(argv)
+        except KeyboardInterrupt as e:  # `Interrupted` (SIGINT, SIGTERM) or a plain KeyboardInterrupt
+            status = 128 + getattr(e, "signum", signal.SIGINT)
+            what = "terminated" if status == EXIT_TERMINATED else "interrupted"
+            with contextlib.suppress(Exception):
+                print(f"\npiezojax: {what} (nothing was written)", file=sys.stderr, flush=True)
+            return status
+
+
+def _main(argv) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help, --version, usage errors
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
+    commands = {"fit": _cmd_fit, "predict": _cmd_predict, "simulate": _cmd_simulate}
     try:
-        _setup_jax()
-        import tomllib
-
-        from piezojax._checks import PiezojaxValueError
-
-        commands = {"fit": _cmd_fit, "predict": _cmd_predict, "simulate": _cmd_simulate}
-        try:
-            return commands[args.command](args)
-        except (PiezojaxValueError, OSError, tomllib.TOMLDecodeError) as e:
-            print(f"piezojax: error: {_one_line(e)}", file=sys.stderr)
+        _setup_jax(figures=args.command == "fit" and not args.no_figures)
+        return commands[args.command](args)
+    except MemoryError as e:
+        _info(f"error: out of memory ({_one_line(e)}); use shorter records or fewer parameters")
+        return EXIT_ERROR
+    except Exception as e:  # noqa: BLE001 - classified here: the except clause must not need piezojax imported
+        _check_interrupted()  # an error caused by an interrupt (e.g. inside an import) is the interrupt
+        if _is_bad_input(e):
+            _info(f"error: {_one_line(e)}")
             return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("\npiezojax: interrupted (nothing was written)", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        if os.environ.get("PIEZOJAX_TRACEBACK"):
+            import traceback
+
+            traceback.print_exc()
+        _info(f"internal error (a bug; please report it with this line, PIEZOJAX_TRACEBACK=1 prints the traceback): "
+              f"{type(e).__name__}: {_one_line(e)}")
+        return EXIT_INTERNAL
+
+
+def _is_bad_input(e: Exception) -> bool:
+    """Errors that mean bad input (one line, exit 2): the project's `PiezojaxValueError`, file-system errors, TOML
+    syntax errors."""
+    import tomllib
+
+    checks = sys.modules.get("piezojax._checks")
+    kinds = (OSError, tomllib.TOMLDecodeError) + ((checks.PiezojaxValueError,) if checks is not None else ())
+    return isinstance(e, kinds)
+
+
+def console_main() -> None:
+    """The `piezojax` console script: `main` and then exit with its status.
+
+    Once `main` has returned, SIGINT and SIGTERM are only recorded (`_hold_signals`): the outputs are complete or
+    absent, and the exit status is the command's. The process then ends with `os._exit` once the output streams are
+    flushed, without the interpreter's teardown: after an interrupt that teardown can crash (SIGSEGV) while JAX/XLA
+    threads still run work the interrupt abandoned, and it restores the default dispositions, under which a late
+    signal would kill the process instead of leaving the status alone. Nothing is left to clean up by then: every
+    output is written, fsynced and renamed, and the standard streams are flushed here."""
+    status = None
+    try:
+        status = main(_restore_signals=False)
+        _hold_signals()
+    except KeyboardInterrupt:  # a signal between an error message and the return
+        _hold_signals()
+        if status is None:
+            status = _interrupt_status()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (BrokenPipeError, ValueError):
+            if stream is sys.stdout:
+                _silence_stdout()
+        except OSError:
+            pass
+    os._exit(status)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

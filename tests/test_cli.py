@@ -259,7 +259,8 @@ def test_bad_input_is_one_line_and_writes_nothing(work, capsys, case):
         argv = argv + ["--out", str(out)]
     else:
         out = {"unwritable output": d / "afile" / "sub", "output parent missing": d / "nowhere" / "sub",
-               "output exists": d}[case]
+               "output exists": d / "existing_out"}[case]
+        (d / "existing_out").mkdir(exist_ok=True)
         expected = {"unwritable output": "is not a directory", "output parent missing": "does not exist",
                     "output exists": "already exists; pass --overwrite"}[case]
         argv = ["fit", str(d / "pi_creep.toml"), files[0], "--out", str(out)]
@@ -286,6 +287,7 @@ def _script():
 
 def test_console_script_help_and_error(work, capsys):
     d, _ = work
+    _bad_cases(d)  # writes badkind.toml and ok.csv (this test may run before, or apart from, the bad-input ones)
     r = subprocess.run([*_script(), "--help"], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0
     for word in ("fit", "predict", "simulate", "[hysteresis]", "prandtl_ishlinskii", "[observer]", "[fit]"):

@@ -22,6 +22,17 @@ def test_package_does_not_change_global_jax_config():
     import subprocess
     import sys
 
-    code = "import jax, piezojax, fitting; print(jax.config.jax_enable_x64, jax.config.jax_numpy_dtype_promotion)"
+    code = ("import jax, piezojax, fitting, fitting.cli; fitting.fit, fitting.Dataset, fitting.FitResult; "
+            "print(jax.config.jax_enable_x64, jax.config.jax_numpy_dtype_promotion)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "standard"]
+
+
+def test_fitting_imports_lazily_and_exports_every_name():
+    import subprocess
+    import sys
+
+    code = ("import sys, fitting, fitting.cli; print('jax' in sys.modules); "
+            "[getattr(fitting, n) for n in fitting._LAZY]; print(set(fitting._LAZY) <= set(dir(fitting)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "True"]  # the command line installs its signal handlers before JAX is imported
