@@ -1,6 +1,6 @@
 r"""Grey-box identification of the Bouc–Wen hysteretic benchmark (Noël & Schoukens) from `train.h5`.
 
-Data: `../shared/data/boucwen_benchmark/train.h5` ("Hysteretic benchmark with a dynamic nonlinearity", J.P. Noël &
+Data: `experiments/data/boucwen_benchmark/train.h5` ("Hysteretic benchmark with a dynamic nonlinearity", J.P. Noël &
 M. Schoukens, 4TU.ResearchData doi 10.4121/12967592; this realisation from github.com/forgi86/dynonet, MIT). Group
 `multisine`: `u` (force, N), `y` (displacement, m), `fs` = 750 Hz; 5 periods × 8192 samples of one random-phase
 multisine (5–150 Hz, 50 N RMS), simulated from rest at sample 0, with measurement noise.
@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "boucwen_benchmark" / "train.h5"
+DATA = Path(__file__).resolve().parent / "data" / "boucwen_benchmark" / "train.h5"
 PERIOD = 8192
 FIT_PERIODS = (1, 2, 3)  # 0-based; samples 8192..32767
 VAL_PERIOD = 4  # samples 32768..40959

@@ -1,6 +1,6 @@
 r"""Fit hysteresis + linear dynamics to a measured piezoelectric actuator (±150 V, 1 Hz sine).
 
-Data: `../shared/data/piezo_150V_1Hz/hysteresis_v_150_1hz.csv` (A. Chandra et al., "Discovery of sparse hysteresis
+Data: `experiments/data/piezo_150V_1Hz/hysteresis_v_150_1hz.csv` (A. Chandra et al., "Discovery of sparse hysteresis
 models for piezoelectric materials", Appl. Phys. Lett. 2023, doi 10.1063/5.0146134; github.com/chandratue/
 SmartHysteresis, MIT). 5 kHz for 10 s; the voltage is 0 until t = 3.257 s and then jumps to −87 V, the start of a
 ±150 V, 1 Hz sine; the displacement rings at ≈ 1 kHz for ≈ 20 ms after that jump.
@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv"
+DATA = Path(__file__).resolve().parent / "data" / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv"
 T_SPLIT = 7.0  # train: t < 7 s, test: t >= 7 s
 RING_WINDOW = 0.03  # s after the voltage jump left out of the 1 kHz fit (aliased ~1 kHz ringing)
 RES_WINDOW = 0.2  # s after the jump used to fit the resonance at full rate

@@ -12,7 +12,7 @@ import scipy.integrate
 import piezojax as pj
 from piezojax._nonlinear.bouc_wen_oscillator import BoucWenOscillator, safe_abs_pow
 
-DATA = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "boucwen_benchmark" / "train.h5"
+DATA = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "data" / "boucwen_benchmark" / "train.h5"
 FS = 750.0
 # Compiled once, shared by the tests below (compilation dominates their run time).
 SIM = jax.jit(lambda u_: BoucWenOscillator().simulate(u_, 1 / FS))
