@@ -28,7 +28,7 @@ _EXPORTS = {
     ),
     "._predict": (
         "ExperimentArrays", "Predictor", "actuator_predictor", "default_predictor", "hysteresis_predictor",
-        "observer_predictor",
+        "observer_predictor", "predict",
     ),
     "._problem": ("Problem", "estimate_noise_std", "free_mask", "parameter_paths"),
     "._results": ("FitResult", "error_metrics", "load_model", "load_summary"),
@@ -80,6 +80,7 @@ if TYPE_CHECKING:  # the same names for static analysis
         default_predictor as default_predictor,
         hysteresis_predictor as hysteresis_predictor,
         observer_predictor as observer_predictor,
+        predict as predict,
     )
     from ._problem import (
         Problem as Problem,

@@ -367,6 +367,11 @@ class Experiment:
         Times are kept (not shifted to start at 0). A boundary within $10^{-6}\\,dt$ of a sample counts as on it, so
         `slice(0, 10)` and `slice(10, None)` partition a record exactly even if `t` carries rounding error.
 
+        The second part of a split record continues from the state the first part leaves (hysteresis memory, creep,
+        ringing): predict it after the first, `fitting.predict(model, test, history=train)` (`piezojax predict
+        --history train.csv`), or predict the whole record and score only its end (`piezojax predict --score-from`),
+        not from rest.
+
         **Arguments:**
 
         - `start`, `stop`: times in seconds; `None` means the start/end of the record.

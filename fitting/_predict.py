@@ -4,7 +4,9 @@ from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 import piezojax as pj
@@ -108,3 +110,76 @@ def _observer_has_force(model) -> bool:
     v = jnp.zeros((4,), jnp.zeros(()).dtype)
     est = eqx.filter_eval_shape(lambda: pj.unwrap(model)(v, v, jnp.asarray(1.0, v.dtype)))
     return est.force is not None
+
+
+def _as_arrays(experiments, inputs, dtype) -> ExperimentArrays:
+    """`experiments` run back to back as one record (their own times are not used: only the common step)."""
+    v_in = np.concatenate([e.v_in for e in experiments])
+    n = v_in.shape[0]
+    return ExperimentArrays(
+        t=jnp.asarray(np.arange(n) * experiments[-1].dt, dtype),
+        dt=jnp.asarray(experiments[-1].dt, dtype),
+        v_in=jnp.asarray(v_in, dtype),
+        channels={c: jnp.asarray(np.concatenate([e[c] for e in experiments]), dtype) for c in inputs},
+    )
+
+
+@eqx.filter_jit
+def _run(predictor, model, data):
+    return predictor(model, data)
+
+
+def predict(model, experiment, *, predictor: Predictor | None = None, history=()) -> dict[str, np.ndarray]:
+    r"""The predicted channels of `model` for one experiment, from rest or after the records of `history`.
+
+    A model starts from rest (demagnetised hysteresis, relaxed creep and dynamics). A record that continues an earlier
+    one (the held-out end of a long record, a test run right after the training runs) is predicted with that earlier
+    record as `history`: the records of `history` drive the model first, in order, and then `experiment` continues
+    from the state they leave; only `experiment`'s samples are returned. This is the same as predicting the joined
+    record and keeping its end, so a record split with `Experiment.slice` is predicted as a whole.
+
+    **Arguments:**
+
+    - `model`: the model (reparametrised or not).
+    - `experiment`: a `fitting.Experiment` with the predictor's input channels (e.g. `v_out` for an observer).
+    - `predictor`: how the model makes the channels (default `default_predictor(model)`).
+    - `history`: an `Experiment` or a sequence of them, run before `experiment`, with its sampling step
+      (within 1e-6 relative) and input channels.
+
+    **Returns:** `{channel: array of experiment.n samples}` (NumPy), for every output of the predictor. Non-finite
+    predictions raise `PiezojaxValueError` naming the experiment and channel. Any length works (no fit is involved).
+
+    ```python
+    train, test = record.slice(None, 7.0), record.slice(7.0, None)
+    y = fitting.predict(result.model, test, history=train)["displacement"]
+    ```
+    """
+    from ._data import Experiment
+
+    if not isinstance(experiment, Experiment):
+        raise PiezojaxValueError(f"`experiment` must be a fitting.Experiment, got {type(experiment).__name__}")
+    history = (history,) if isinstance(history, Experiment) else tuple(history or ())
+    for i, h in enumerate(history):
+        if not isinstance(h, Experiment):
+            raise PiezojaxValueError(f"`history[{i}]` must be a fitting.Experiment, got {type(h).__name__}")
+        if abs(h.dt - experiment.dt) > 1e-6 * experiment.dt:
+            raise PiezojaxValueError(
+                f"history {h.name!r} is sampled every {h.dt:.6g} s but {experiment.name!r} every {experiment.dt:.6g} "
+                "s; a warm-up record must have the same sampling step"
+            )
+    predictor = default_predictor(model) if predictor is None else predictor
+    records = (*history, experiment)
+    for e in records:
+        missing = [c for c in predictor.inputs if not e.has(c)]
+        if missing:
+            raise PiezojaxValueError(
+                f"{e._label()} lacks the column(s) {missing} the model reads as input")
+    model = pj.unwrap(model)
+    dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(model) if eqx.is_inexact_array(x)] or [0.0])
+    out = _run(predictor, model, _as_arrays(records, predictor.inputs, dtype))
+    start = sum(e.n for e in history)
+    preds = {c: np.asarray(out[c])[start:] for c in predictor.outputs}
+    bad = [c for c, y in preds.items() if not np.all(np.isfinite(y))]
+    if bad:
+        raise PiezojaxValueError(f"{experiment._label()}: the model's {bad[0]!r} is not finite")
+    return preds

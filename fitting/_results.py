@@ -139,20 +139,19 @@ class FitResult:
                 )
         return "\n".join(lines)
 
-    def predict(self, dataset) -> list[dict[str, np.ndarray]]:
-        """The fitted model's predicted target channels for each experiment of `dataset` (same predictor)."""
-        from ._problem import Problem
+    def predict(self, dataset, history=()) -> list[dict[str, np.ndarray]]:
+        """The fitted model's predicted target channels for each experiment of `dataset` (a `Dataset`, a list of
+        experiments or one `Experiment`), each after the records of `history` (see `fitting.predict`: e.g. the
+        training record before a held-out record that continues it). Any record length works."""
+        from ._data import Experiment
+        from ._predict import predict
 
-        prob = Problem(
-            self.model,
-            dataset,
-            predictor=self.problem.predictor,
-            targets=self.problem.targets,
-            free=lambda m: m,
-            weights={c: 1.0 for c in self.problem.targets},
-            scales="value",
-        )
-        return prob.experiment_predictions(prob.u0)
+        exps = [dataset] if isinstance(dataset, Experiment) else list(dataset)
+        out = []
+        for e in exps:
+            preds = predict(self.model, e, predictor=self.problem.predictor, history=history)
+            out.append({c: y for c, y in preds.items() if c in self.problem.targets})
+        return out
 
     def save(self, path, overwrite: bool = False, figures: bool = True, extra: dict | None = None) -> Path:
         """Write `path/` atomically: `model.eqx` (equinox serialisation of `params`), `result.json` (summary plus

@@ -74,6 +74,8 @@ _PREDICT_EXAMPLES = """\
 examples:
   piezojax predict fits/pi_creep held_out.csv --out predictions
   piezojax predict fits/obs day2_*.mat --out predictions --overwrite
+  piezojax predict fits/pi_creep test_7to10s.csv --history train_0to7s.csv --out predictions
+  piezojax predict fits/pi_creep whole_record.csv --score-from 7.0 --out predictions
 
 OUT is a folder with one CSV per input (t, v_in and the predicted channels on the input's time grid) and
 metrics.json; RMSE and NRMSE (% of the measured range) are printed for the channels a file also measures.
@@ -160,6 +162,11 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--out", metavar="OUT", required=True, help="folder to create for the predictions")
     pred.add_argument("--overwrite", action="store_true",
                       help="replace OUT if it is the output of an earlier `piezojax predict` (atomically)")
+    pred.add_argument("--history", metavar="FILE", action="append",
+                      help="a record run before each DATA file (repeatable, in order), e.g. the training record that "
+                      "a held-out DATA file continues: the model's state carries over; same sampling step")
+    pred.add_argument("--score-from", metavar="T", type=float,
+                      help="compute the errors only on samples with t >= T [s] (the predictions cover the whole file)")
     _data_options(pred, "the fit (default: the fit's)")
 
     sim = sub.add_parser(
@@ -492,35 +499,6 @@ def _check_memory(config, dataset, num_free: int) -> None:
                      "resample the records, split long ones, or fit fewer parameters")
 
 
-def _experiment_arrays(exp, inputs):
-    import jax.numpy as jnp
-
-    from ._predict import ExperimentArrays
-
-    return ExperimentArrays(
-        t=jnp.asarray(exp.t), dt=jnp.asarray(exp.dt), v_in=jnp.asarray(exp.v_in),
-        channels={c: jnp.asarray(exp[c]) for c in inputs},
-    )
-
-
-def _run_model(config, model, exp) -> dict:
-    """The predicted channels (`config.outputs`) of `model` for one experiment, as numpy arrays."""
-    import equinox as eqx
-    import numpy as np
-
-    predictor = config.predictor()
-    missing = [c for c in config.inputs if not exp.has(c)]
-    if missing:
-        raise _error(
-            f"experiment {exp.name!r} (file {exp.source!r}) lacks the column(s) {missing} the model reads as input")
-    out = eqx.filter_jit(lambda p, m, d: p(m, d))(predictor, model, _experiment_arrays(exp, config.inputs))
-    preds = {c: np.asarray(out[c]) for c in config.outputs}
-    bad = [c for c, y in preds.items() if not np.all(np.isfinite(y))]
-    if bad:
-        raise _error(f"experiment {exp.name!r}: the model's {bad[0]!r} is not finite")
-    return preds
-
-
 def _safe_name(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
@@ -623,20 +601,29 @@ def _fit_data_settings(model_dir, config) -> dict:
 
 
 def _cmd_predict(args) -> int:
+    import numpy as np
+
     import fitting
 
-    out = _check_output(args.out, args.overwrite, "predict", inputs=args.data, fit_folder=args.model_dir)
+    out = _check_output(args.out, args.overwrite, "predict", inputs=[*args.data, *(args.history or [])],
+                        fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
     settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
     with fitting.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
         results, metrics = [], {}
+        history = _load_data(args.history, settings)[0] if args.history else ()
         for exp in dataset:
-            preds = _run_model(config, model, exp)
+            preds = fitting.predict(model, exp, predictor=config.predictor(), history=history)
+            preds = {c: preds[c] for c in config.outputs}
             results.append((exp, preds))
             measured = [c for c in preds if exp.has(c)]
+            scored = exp.t >= args.score_from - 1e-6 * exp.dt if args.score_from is not None else slice(None)
+            if args.score_from is not None and np.count_nonzero(scored) < 2:
+                raise _error(f"{exp._label()}: --score-from {args.score_from:g} s leaves fewer than 2 samples of the "
+                             f"record [{exp.t[0]:.6g}, {exp.t[-1]:.6g}] s")
             if measured:
-                metrics[exp.name] = {c: fitting.error_metrics(preds[c], exp[c]) for c in measured}
+                metrics[exp.name] = {c: fitting.error_metrics(preds[c][scored], exp[c][scored]) for c in measured}
         names = {}
         for exp, _ in results:
             base = _safe_name(exp.name.replace("/", "__"))
@@ -653,6 +640,8 @@ def _cmd_predict(args) -> int:
             "files": {exp.name: {"input": exp.source, "output": f"{names[exp.name]}.csv"} for exp, _ in results},
             "metrics": metrics,
             "data_settings": settings,
+            "history": [str(Path(p).absolute()) for p in args.history or []],
+            "score_from": args.score_from,
             "warnings": unit_warnings,
         })
         _check_interrupted()
@@ -678,7 +667,8 @@ def _cmd_simulate(args) -> int:
     model = pj.unwrap(config.build(None, require_values=True))
     dataset, _ = _load_data([args.input], settings)
     exp = dataset[0]
-    preds = _run_model(config, model, exp)
+    preds = fitting.predict(model, exp, predictor=config.predictor())
+    preds = {c: preds[c] for c in config.outputs}
     result = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
     _check_interrupted()
     _hold_signals()

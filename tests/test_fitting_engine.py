@@ -309,6 +309,17 @@ def test_fit_recovers_and_reports(data):
     text = res.report()
     assert "converged" in text and "dynamics.omega[0]" in text
     assert np.allclose(np.diag(res.correlation), 1.0)
+    # predictions: the fitted channels of every record, equal to the fit's own; a 10-sample record works too, and
+    # after its first part as history a record's end is the whole record's end
+    preds = res.predict(data)
+    fit_preds = res.problem.experiment_predictions(res.u)
+    for p, q in zip(preds, fit_preds):
+        np.testing.assert_allclose(p["displacement"], q["displacement"], rtol=1e-10, atol=1e-14)
+    e = data[0]
+    head, tail = e.slice(None, e.t[10], name="head"), e.slice(e.t[10], e.t[19] + 0.5 * e.dt, name="tail")
+    (y,) = res.predict(tail, history=head)
+    assert tail.n == 10 and set(y) == {"displacement"}
+    np.testing.assert_allclose(y["displacement"], preds[0]["displacement"][10:20], rtol=1e-10, atol=1e-14)
 
 
 def test_failed_fits_return_reasons_not_nan(data):

@@ -49,6 +49,7 @@ def bench(tmp_path_factory):
     h = ["t", "v_in", "displacement"]
     _csv(d / "ok.csv", h, [t, v, x])
     _csv(d / "ok2.csv", h, [t, 0.5 * v, 0.5 * x])
+    _csv(d / "slow.csv", h, [2 * t, v, x])
     _csv(d / "nov.csv", ["t", "displacement"], [t, x])
     _csv(d / "not.csv", ["v_in", "displacement"], [v, x])
     _csv(d / "nan.csv", h, [t, v, np.where(np.arange(N) == 17, np.nan, x)])
@@ -161,8 +162,8 @@ def _fit_opts(*opts, cfg="pi.toml", data=("ok.csv",), out="out"):
 
 
 def _predict(model, *data, out="pout", opts=()):
-    return lambda d: (["predict", str(d / model), *[str(d / f) for f in data], "--out", str(d / out), *opts],
-                      d / out)
+    return lambda d: (["predict", str(d / model), *[str(d / f) for f in data], "--out", str(d / out),
+                       *[o.replace("{d}", str(d)) for o in opts]], d / out)
 
 
 def _simulate(cfg, inp, out="sout.csv", opts=()):
@@ -315,6 +316,10 @@ CASES = {
     "predict from a non-fit folder": (_predict("existing", "ok.csv"), 2, ["not a folder written by `piezojax fit`"]),
     "predict from a missing folder": (_predict("nofit", "ok.csv"), 2, ["nofit", "does not exist"]),
     "predict bad data": (_predict("fits/fit", "nan.csv"), 2, ["nan.csv", "row 17"]),
+    "predict with a history of another rate": (_predict("fits/fit", "ok.csv", opts=("--history", "{d}/slow.csv")), 2,
+                                                ["slow", "sampled every 0.002 s", "same sampling step"]),
+    "predict scored from beyond the record": (_predict("fits/fit", "ok.csv", opts=("--score-from", "5")), 2,
+                                              ["ok.csv", "--score-from 5 s leaves fewer than 2 samples"]),
     "predict bad --units": (_predict("fits/fit", "ok.csv", opts=("--units", "v_in=um")), 2,
                             ["--units", "'um'", "'v_in'", "voltage"]),
     # ---- simulate
@@ -524,3 +529,36 @@ def test_the_shipped_records_read_through_the_generic_path(tmp_path, capsys):
     assert main(["predict", str(out), str(short), "--out", str(tmp_path / "pred")]) == 0
     pred = fitting.load_experiment(tmp_path / "pred" / "piezo_4s.csv")
     assert pred.n == 20_000 and np.max(np.abs(pred["displacement"])) < 1e-4  # metres, not micrometres
+
+
+def test_predict_continues_from_the_history(bench, tmp_path, capsys):
+    """A record split in two: the second part predicted after the first (`--history`, `fitting.predict`) equals the
+    end of the whole record's prediction, and `--score-from` scores that end; from rest it differs."""
+    t = np.arange(N) * DT
+    v = 30 * np.sin(2 * np.pi * 3 * t) + 10
+    x = 1e-8 * v + 2e-9 * np.abs(v)
+    whole = fitting.Experiment.from_arrays(t=t, v_in=v, displacement=x, name="whole")
+    first, second = whole.slice(None, 0.2, name="first"), whole.slice(0.2, None, name="second")
+    for e in (whole, first, second):
+        fitting.save_experiment(e, tmp_path / f"{e.name}.csv")
+    fit = bench / "fits" / "fit"
+    assert main(["predict", str(fit), str(tmp_path / "second.csv"), "--history", str(tmp_path / "first.csv"),
+                 "--out", str(tmp_path / "p_hist")]) == 0
+    assert main(["predict", str(fit), str(tmp_path / "whole.csv"), "--score-from", "0.2", "--out",
+                 str(tmp_path / "p_whole")]) == 0
+    assert main(["predict", str(fit), str(tmp_path / "second.csv"), "--out", str(tmp_path / "p_rest")]) == 0
+    capsys.readouterr()
+    hist = fitting.load_experiment(tmp_path / "p_hist" / "second.csv")["displacement"]
+    full = fitting.load_experiment(tmp_path / "p_whole" / "whole.csv")["displacement"]
+    rest = fitting.load_experiment(tmp_path / "p_rest" / "second.csv")["displacement"]
+    np.testing.assert_allclose(hist, full[first.n:], rtol=1e-12, atol=1e-20)
+    assert np.max(np.abs(rest - hist)) > 1e-3 * np.ptp(hist)  # from rest, the hysteresis memory is lost
+    m_hist = json.loads((tmp_path / "p_hist" / "metrics.json").read_text())["metrics"]["second"]["displacement"]
+    m_whole = json.loads((tmp_path / "p_whole" / "metrics.json").read_text())["metrics"]["whole"]["displacement"]
+    assert m_hist["rmse"] == pytest.approx(m_whole["rmse"], rel=1e-9)
+    # the API: the same path for a fitted model, any length (10 samples)
+    model = fitting.load_model(fit, like=fitting.load_config(fit / "config.toml").build(None))
+    short = second.slice(0.2, 0.2 + 9.5 * DT)
+    y = fitting.predict(model, short, history=first)["displacement"]
+    assert short.n == 10
+    np.testing.assert_allclose(y, hist[:10], rtol=1e-12, atol=1e-20)
