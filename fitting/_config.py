@@ -14,6 +14,7 @@ import dataclasses
 import math
 import os
 import tomllib
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,10 @@ _OBSERVER_KEYS = _OBSERVER_REQUIRED + ("bias_current", "capacitance_p", "filter_
 _FIT_KEYS = ("free", "weights", "smoothing", "max_steps", "targets", "method")
 _DATA_KEYS = ("units", "columns", "group", "sample_rate", "ignore_extra")
 _WEIGHT_MODES = ("range", "noise")
+
+
+class StartWarning(UserWarning):
+    """One of the data-driven starts failed and another was used."""
 
 
 class _Negative(pj.AbstractReparam):
@@ -385,10 +390,17 @@ class ModelConfig:
                     f"{self.source}: forward simulation needs every parameter value; missing: {', '.join(missing)}"
                 )
         model = self._assemble(_InitialValues(self, dataset, use_cold_start=False))
-        if dataset is not None and _InitialValues(self, dataset)._cold_start() is not None:
-            # two data-driven starts for PI + Kelvin–Voigt + even-order dynamics: keep the one closer to the data
-            other = self._assemble(_InitialValues(self, dataset))
-            if _start_error(other, dataset) < _start_error(model, dataset):
+        if dataset is not None:
+            # two data-driven starts for PI + Kelvin–Voigt + even-order dynamics: keep the one closer to the data;
+            # the cold start failing (a degenerate record) leaves the rule-based start, with a warning
+            try:
+                values = _InitialValues(self, dataset)
+                other = self._assemble(values) if values._cold_start() is not None else None
+            except PiezojaxValueError as e:
+                warnings.warn(f"{self.source}: the data-driven cold start failed ({e}); starting from the simple "
+                              "rules instead", StartWarning, stacklevel=2)
+                other = None
+            if other is not None and _start_error(other, dataset) < _start_error(model, dataset):
                 model = other
         return self._constrain(model)
 

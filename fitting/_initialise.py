@@ -385,8 +385,11 @@ def cold_start_actuator(
     if npairs:  # 5. final gains through the final dynamics
         coef = _nnls(_through(compact_raw, recs, omega, zeta), y_all)
 
-    # strictly positive gains, so that the Positive reparametrisation can start from them
-    top = max(float(np.max(coef[: 1 + n_plays])), np.finfo(float).tiny)
+    # strictly positive gains, so that the Positive reparametrisation can start from them; the floor is relative to
+    # the data's own scale (|y| per volt), so that a fit that put no weight on the hysteresis still gives finite
+    # creep stiffnesses (their inverses)
+    scale = float(np.max(np.abs(y_all))) / vmax if vmax > 0 else 1.0
+    top = max(float(np.max(coef[: 1 + n_plays])), 1e-6 * scale, np.finfo(float).tiny)
     w0 = max(float(coef[0]), 1e-3 * top)
     weights = np.maximum(coef[1 : 1 + n_plays], 1e-3 * top)
     gains = coef[1 + n_plays :]

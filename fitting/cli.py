@@ -529,7 +529,14 @@ def _cmd_fit(args) -> int:
         _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}",
               quiet)
         _info("initial values from the data", quiet)
-        params = config.build(dataset)
+        from ._config import StartWarning
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", StartWarning)
+            params = config.build(dataset)
+        start_warnings = [str(w.message) for w in caught if issubclass(w.category, StartWarning)]
+        for m in start_warnings:
+            _info(f"warning: {m}")
         max_steps = args.max_steps if args.max_steps is not None else config.max_steps
         what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
         _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
@@ -553,7 +560,7 @@ def _cmd_fit(args) -> int:
                 "data_settings": settings,
                 "piezojax_version": pj.__version__,
             },
-            "warnings": unit_warnings,
+            "warnings": unit_warnings + start_warnings,
         }
         _info(f"writing {out}", quiet)
         result.write_files(tmp, figures=not args.no_figures, extra=extra)

@@ -562,3 +562,23 @@ def test_predict_continues_from_the_history(bench, tmp_path, capsys):
     y = fitting.predict(model, short, history=first)["displacement"]
     assert short.n == 10
     np.testing.assert_allclose(y, hist[:10], rtol=1e-12, atol=1e-20)
+
+
+def test_cold_start_on_the_real_record_and_fallback(monkeypatch):
+    """The PI + Kelvin–Voigt cold start on the measured record's first 5 s gave infinite creep stiffnesses (the
+    floor of its gains was relative to PI weights that the NNLS had set to 0); and a cold start that fails leaves
+    the rule-based start with a warning instead of ending the fit."""
+    rec = fitting.load_experiment(DATA / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv",
+                                  columns={"2": "t", "3": "displacement", "4": "v_in"}, units={"displacement": "um"})
+    cold = pj.unwrap(fitting.cold_start_actuator([rec.slice(None, 5.0)], 10, 2, 2))
+    assert np.all(np.isfinite(np.asarray(cold.creep.stiffnesses)))
+
+    def broken(*args, **kwargs):
+        raise pj.PiezojaxValueError("`stiffnesses` must be finite and > 0, got [inf, inf]")
+
+    monkeypatch.setattr("fitting._initialise.cold_start_actuator", broken)
+    cfg = fitting.parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n[creep]\nkind = "kelvin_voigt"\n'
+                               "order = 1\n[dynamics]\norder = 2\n", "pc.toml")
+    with pytest.warns(fitting._config.StartWarning, match="pc.toml: the data-driven cold start failed"):
+        model = pj.unwrap(cfg.build(fitting.Dataset([rec.slice(3.0, 4.0)])))
+    assert np.all(np.isfinite(np.asarray(model.creep.stiffnesses)))
