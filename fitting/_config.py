@@ -43,6 +43,17 @@ MAX_CREEP_ORDER = 10
 MAX_SUBSTEPS = 64
 MAX_STEPS = 100_000
 MAX_LEVELS = 10
+MAX_WEIGHT = 1e20  # a channel weight beyond it squares past float64 with the residuals it scales
+
+
+def _finite_number(x) -> bool:
+    """A TOML number (not a bool) that is finite as a float (an integer of 400 digits is not)."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
 
 # keys allowed per table (and per kind), besides `kind`
 _HYSTERESIS_KEYS = {
@@ -119,7 +130,7 @@ class _Table:
         if key not in self.data:
             return default
         x = self.data[key]
-        if isinstance(x, bool) or not isinstance(x, int | float) or not math.isfinite(x):
+        if not _finite_number(x):
             raise self.error(f"must be a finite number, got {x!r}", key)
         if positive and not x > 0:
             raise self.error(f"must be > 0, got {x!r}", key)
@@ -157,7 +168,7 @@ class _Table:
             return None
         x = self.data[key]
         if not isinstance(x, list) or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in x
+            _finite_number(v) for v in x
         ):
             raise self.error(f"must be a list of finite numbers, got {x!r}", key)
         if length is not None and len(x) != length:
@@ -501,7 +512,7 @@ def _start_error(model, dataset) -> float:
         if e.has("displacement"):
             y = np.asarray(e["displacement"])
             err = np.asarray(sim(model, jnp.asarray(e.v_in), jnp.asarray(e.dt))) - y
-            total += float(np.sum(err**2)) / max(float(np.ptp(y)), np.finfo(float).tiny) ** 2
+            total += float(np.sum((err / max(float(np.ptp(y)), np.finfo(float).tiny)) ** 2))
     return total if np.isfinite(total) else np.inf
 
 
@@ -912,15 +923,15 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         if bad:
             raise ft.error(f"unknown channel {bad[0]!r}; allowed channels: {', '.join(CHANNELS)}", "weights")
         for c, w in weights.items():
-            if isinstance(w, bool) or not isinstance(w, int | float) or not (math.isfinite(w) and w > 0):
-                raise ft.error(f"weight of {c!r} must be a finite number > 0, got {w!r}", "weights")
+            if not (_finite_number(w) and 0 < w <= MAX_WEIGHT):
+                raise ft.error(f"weight of {c!r} must be a number > 0 and <= {MAX_WEIGHT:g}, got {w!r}", "weights")
         weights = {c: float(w) for c, w in weights.items()}
     else:
         raise ft.error(f"must be \"range\", \"noise\" or a table {{channel = weight}}, got {weights!r}", "weights")
     smoothing = ft.data.get("smoothing")
     if smoothing is not None:
         if not (isinstance(smoothing, list) and smoothing and all(
-                isinstance(s, int | float) and not isinstance(s, bool) and math.isfinite(s) and s >= 0
+                _finite_number(s) and s >= 0
                 for s in smoothing)):
             raise ft.error(f"must be a non-empty list of numbers >= 0 (continuation levels), got {smoothing!r}",
                            "smoothing")

@@ -9,6 +9,7 @@ messages naming the file, the column and the row. The engine converts them to JA
 when it builds residuals.
 """
 
+import contextlib
 import dataclasses
 import io
 import math
@@ -115,6 +116,10 @@ MAX_MAGNITUDE = 1e30
 """Largest accepted |value| in any column: beyond it, squares and products in the model and the residuals overflow
 float64."""
 
+MIN_MAGNITUDE = 1e-30
+"""Smallest accepted peak |value| of a column that is not identically zero: below it, squares and products underflow
+float64 (no SI signal of a piezo bench comes near it)."""
+
 DT_RTOL = 1e-3
 """Largest accepted deviation of a time step from the typical (median) step, relative to it: max |Δt_k − dt| ≤
 DT_RTOL · dt, or two floating-point spacings of the largest |t| (float32 spacings for stamps that are float32 numbers),
@@ -220,6 +225,13 @@ class Experiment:
                 raise PiezojaxValueError(
                     f"{label}: column {k!r} has a non-finite value ({a[i]}) at row {i} (0-based sample index); "
                     f"{int(bad.sum())} non-finite value(s) in total"
+                )
+            peak = float(np.max(np.abs(a))) if a.size else 0.0
+            if 0 < peak < MIN_MAGNITUDE:
+                raise PiezojaxValueError(
+                    f"{label}: column {k!r} is at most {peak:.3g} in magnitude; values this small (below "
+                    f"{MIN_MAGNITUDE:g}) underflow the model's arithmetic (expected {k!r} in {UNITS[k]}; declare its "
+                    "unit if it is not SI)"
                 )
             huge = np.abs(a) > MAX_MAGNITUDE
             if huge.any():
@@ -508,9 +520,11 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
     if not lines:
         raise PiezojaxValueError(f"file {str(path)!r}: no header row (the file is empty or has only comments)")
     head = lines[0][1]
-    # Comma by default; tab or semicolon (spreadsheet exports in some locales) when the header uses them instead.
-    delim = next((d for d in (",", "\t", ";") if d in head), ",")
+    # Comma by default; tab or semicolon (spreadsheet exports in some locales) when the header uses them instead;
+    # runs of spaces (numpy.savetxt's default) when there is none of those.
+    delim = next((d for d in (",", "\t", ";") if d in head), None if len(head.split()) > 1 else ",")
     split = lambda row: [h.strip().strip('"').strip("'").strip() for h in row.split(delim)]  # noqa: E731
+    nfields = lambda row: len(row.split(delim))  # noqa: E731
     header = split(head)
     usecols = None
     if any(header) and all(_is_number(h) for h in header if h):
@@ -541,11 +555,11 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
     if dup:
         raise PiezojaxValueError(f"file {str(path)!r}: duplicate column(s) {dup} in header row")
     body = lines[1:]
+    width = len(header)
     for lineno, ln in body:
-        if ln.count(delim) != len(header) - 1:
+        if nfields(ln) != width:
             raise PiezojaxValueError(
-                f"file {str(path)!r}: line {lineno} has {ln.count(delim) + 1} fields but the header names "
-                f"{len(header)} columns"
+                f"file {str(path)!r}: line {lineno} has {nfields(ln)} fields but the header names {width} columns"
             )
     if usecols is not None:
         header = [header[j] for j in usecols]
@@ -691,6 +705,8 @@ def load_experiment(
     if p.is_dir():
         raise PiezojaxValueError(f"file {str(p)!r} is a directory, not a data file")
     suffix = p.suffix.lower()
+    if group is not None and suffix in (".csv", ".npz"):
+        raise PiezojaxValueError(f"file {str(p)!r}: `group` ({group!r}) applies to HDF5 and .mat files, not {suffix}")
     try:
         if suffix == ".csv":
             data = _read_csv(p, parse_columns(columns))
@@ -918,6 +934,13 @@ class Dataset(Sequence):
         ps = [Path(os.fspath(p)).expanduser() for p in paths]
         if not ps:
             raise PiezojaxValueError("`paths` must name at least one data file")
+        seen: dict[Path, Path] = {}
+        for p in ps:
+            with contextlib.suppress(OSError, RuntimeError):
+                real = p.resolve()
+                if real in seen and seen[real] != p and p.exists():
+                    raise PiezojaxValueError(f"the same data file is given twice: {str(seen[real])!r} and {str(p)!r}")
+                seen.setdefault(real, p)
         names = _unique_names(ps)
         return cls(load_experiment(p, name=n, group=group, ignore_extra=ignore_extra, units=units, columns=columns,
                                    sample_rate=sample_rate) for p, n in zip(ps, names))
@@ -964,7 +987,7 @@ class Dataset(Sequence):
         lacking = {e.name: [c for c in req if c not in e.channels] for e in self._experiments}
         lacking = {k: v for k, v in lacking.items() if v}
         if lacking:
-            detail = "; ".join(f"{k!r} lacks {v}" for k, v in lacking.items())
+            detail = "; ".join(f"{self[k]._label()} lacks {v}" for k, v in lacking.items())
             raise PiezojaxValueError(f"required channel(s) {list(req)} missing: {detail}")
         return self
 

@@ -58,10 +58,10 @@ def _temporaries(p: Path) -> list[tuple[Path, int]]:
         entries = list(os.scandir(p.parent))
     except OSError:
         return []
-    prefixes = {f".{p.name}{_TMP_TAG}", f".{p.stem}{_TMP_TAG}"}
+    prefix = f".{p.name}{_TMP_TAG}"
     out = []
     for entry in entries:
-        if not any(entry.name.startswith(prefix) for prefix in prefixes):
+        if not entry.name.startswith(prefix):
             continue
         m = _TEMP_PID.search(entry.name)
         if m:
@@ -91,7 +91,7 @@ def _protected(p: Path) -> str | None:
     directory), or None."""
     try:
         rp, cwd = p.resolve(), Path.cwd().resolve()
-    except OSError:
+    except (OSError, RuntimeError):  # e.g. a symlink loop in a parent: not the working directory, and not writable
         return None
     if rp == cwd:
         return "it is the working directory"
@@ -120,8 +120,8 @@ def _check_name_length(p: Path) -> None:
         limit = os.pathconf(p.parent, "PC_NAME_MAX")
     except (OSError, ValueError, AttributeError):
         limit = 255
-    # the temporary sibling adds a dot, the tag, the process id and 8 random characters
-    room = limit - len(f".{_TMP_TAG}{os.getpid()}-") - 12
+    # the temporary sibling adds a dot, the tag, the process id, 8 random characters and (files) the suffix again
+    room = limit - len(f".{_TMP_TAG}{os.getpid()}-") - 12 - len(os.fsencode(p.suffix))
     n = len(os.fsencode(p.name))
     if n > room:
         raise PiezojaxValueError(
@@ -142,9 +142,9 @@ def check_writable(path: str | os.PathLike) -> Path:
 
     **Returns:**
 
-    The absolute `Path`. Raises `PiezojaxValueError` naming `path` if its parent does not exist, is not a directory,
-    or is not writable, or if `path` itself is an existing directory where a file is expected (or vice versa is
-    left to the writer).
+    The absolute `Path`. Raises `PiezojaxValueError` naming `path` if it is a symbolic link (replacing it would
+    replace the link), if its parent does not exist, is not a directory, or is not writable, or if its name is too
+    long for the file system with the temporary's additions.
 
     ```python
     out = check_writable("results/fit.json")  # fails now, not after an hour of fitting
@@ -153,6 +153,13 @@ def check_writable(path: str | os.PathLike) -> Path:
     if not os.fspath(path):
         raise PiezojaxValueError("the output path is empty")
     p = Path(os.fspath(path)).expanduser().absolute()
+    if p.is_symlink():
+        # replacing it would replace the link, not what it points to (and a dangling or looping link cannot be
+        # written through): name the real path
+        raise PiezojaxValueError(
+            f"cannot write {str(p)!r}: it is a symbolic link (to {os.readlink(p)!r}); give the path it stands for, "
+            "or remove the link"
+        )
     parent = p.parent
     if not parent.exists():
         raise PiezojaxValueError(f"cannot write {str(p)!r}: directory {str(parent)!r} does not exist")
@@ -231,7 +238,8 @@ def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
     if p.is_dir():
         raise PiezojaxValueError(f"cannot write file {str(p)!r}: a directory of that name exists")
     _claim(p)
-    fd, tmp_name = tempfile.mkstemp(dir=p.parent, prefix=_temp_prefix(p.stem), suffix=p.suffix)
+    # the full name in the prefix (run.csv and run.h5 have distinct temporaries), the suffix kept for sniffing writers
+    fd, tmp_name = tempfile.mkstemp(dir=p.parent, prefix=_temp_prefix(p.name), suffix=p.suffix)
     os.close(fd)
     tmp = Path(tmp_name)
     try:

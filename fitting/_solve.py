@@ -403,8 +403,8 @@ def solve(
     """
     if linear_solver is None:
         linear_solver = lx.Cholesky()
-    if max_steps < 1:
-        raise PiezojaxValueError(f"`max_steps` must be >= 1, got {max_steps}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 1:
+        raise PiezojaxValueError(f"`max_steps` must be an integer >= 1, got {max_steps!r}")
     if method not in ("levenberg_marquardt", "trust_region"):
         raise PiezojaxValueError(f'`method` must be "levenberg_marquardt" or "trust_region", got {method!r}')
     levels = [None] if smoothing is None else list(smoothing)

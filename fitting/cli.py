@@ -321,6 +321,9 @@ def _out(text: str) -> None:
         print(text, flush=True)
     except BrokenPipeError:
         _silence_stdout()
+    except OSError as e:  # e.g. a full disk behind a redirection: the outputs are written, say so on stderr
+        _silence_stdout()
+        _info(f"warning: could not write to standard output ({e.strerror or e}); the outputs are complete")
 
 
 def _silence_stdout() -> None:
@@ -344,6 +347,8 @@ def _pairs(items: list[str] | None, option: str, example: str) -> dict[str, str]
             key, sep, value = part.partition("=")
             if not sep or not key.strip() or not value.strip():
                 raise _error(f"{option}: expected {example}, got {part.strip()!r}")
+            if key.strip() in out:
+                raise _error(f"{option}: {key.strip()!r} is given twice")
             out[key.strip()] = value.strip()
     return out
 
@@ -387,13 +392,18 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
     what = "output file" if is_file else "output folder"
     if not path.strip():
         raise _error(f"--out is empty; name the {what}")
+    if is_file and path.endswith(("/", os.sep)):
+        raise _error(f"{what} {path!r} ends with a slash (a folder); name the file")
     if is_file and Path(path).suffix.lower() not in SUPPORTED_SUFFIXES:
         raise _error(f"{what} {path!r}: unsupported suffix {Path(path).suffix!r}; its suffix picks the format, one "
                      f"of {', '.join(SUPPORTED_SUFFIXES)}")
     p = fitting.check_writable(path)
-    rp = p.resolve()
-    for f in inputs:
-        rf = Path(f).expanduser().resolve()
+    try:
+        rp = p.resolve()
+        resolved_inputs = [(f, Path(f).expanduser().resolve()) for f in inputs]
+    except (OSError, RuntimeError) as e:  # a symlink loop in a parent folder
+        raise _error(f"cannot resolve the paths of {what} {str(p)!r} and the inputs ({e})") from e
+    for f, rf in resolved_inputs:
         if rp == rf:
             raise _error(f"refusing to write the {what} {str(p)!r}: it is the input {str(f)!r}")
         if not is_file and rp in rf.parents:
@@ -513,14 +523,21 @@ def _cmd_fit(args) -> int:
     from ._config import load_config
 
     quiet = args.quiet
-    if args.max_steps is not None and args.max_steps < 1:
-        raise _error(f"--max-steps must be >= 1, got {args.max_steps}")
+    from ._config import MAX_STEPS
+
+    if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
+        raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
     out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
     config = load_config(args.config)
     settings = _data_settings(args, config.data)
     with fitting.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
         targets = config.fit_targets(dataset)
+        if isinstance(config.weights, dict):
+            lacking = [c for c in targets if c not in config.weights]
+            if lacking:
+                raise _error(f"{config.source}: [fit] weights: no weight for the target channel {lacking[0]!r} "
+                             f"(the data have it); give one, or set [fit] targets")
         for c in config.inputs:
             dataset.require(c)
         _check_fit_data(dataset, targets)
@@ -726,8 +743,12 @@ def _main(argv) -> int:
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
     commands = {"fit": _cmd_fit, "predict": _cmd_predict, "simulate": _cmd_simulate}
     try:
-        _setup_jax(figures=args.command == "fit" and not args.no_figures)
-        return commands[args.command](args)
+        with warnings.catch_warnings():
+            # numpy's RuntimeWarnings (an overflow in a trial step, an all-NaN slice) are not messages for the
+            # command line: the outcome says what went wrong, in one line
+            warnings.simplefilter("ignore", RuntimeWarning)
+            _setup_jax(figures=args.command == "fit" and not args.no_figures)
+            return commands[args.command](args)
     except MemoryError as e:
         _info(f"error: out of memory ({_one_line(e)}); use shorter records or fewer parameters")
         return EXIT_ERROR
@@ -773,13 +794,13 @@ def console_main() -> None:
         if status is None:
             status = _interrupt_status()
     for stream in (sys.stdout, sys.stderr):
+        if stream is None:  # closed by the caller (`>&-`)
+            continue
         try:
             stream.flush()
-        except (BrokenPipeError, ValueError):
+        except (OSError, ValueError):
             if stream is sys.stdout:
                 _silence_stdout()
-        except OSError:
-            pass
     os._exit(status)
 
 

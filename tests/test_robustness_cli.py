@@ -50,6 +50,11 @@ def bench(tmp_path_factory):
     _csv(d / "ok.csv", h, [t, v, x])
     _csv(d / "ok2.csv", h, [t, 0.5 * v, 0.5 * x])
     _csv(d / "slow.csv", h, [2 * t, v, x])
+    _csv(d / "tiny.csv", h, [t, v, 1e-200 * x])
+    _csv(d / "denormal.csv", h, [t, 1e-310 * v, x])
+    (d / "linked").symlink_to(d / "sub")
+    (d / "dangling").symlink_to(d / "nowhere" / "deeper")
+    (d / "loop").symlink_to(d / "loop")
     _csv(d / "nov.csv", ["t", "displacement"], [t, x])
     _csv(d / "not.csv", ["v_in", "displacement"], [v, x])
     _csv(d / "nan.csv", h, [t, v, np.where(np.arange(N) == 17, np.nan, x)])
@@ -136,6 +141,11 @@ def bench(tmp_path_factory):
         "obsmissing.toml": '[observer]\nkind = "current_integration"\nstiffness = 1.0\n',
         "closedform.toml": '[hysteresis]\nkind = "bouc_wen"\nmethod = "closed_form"\nsmoothing = 0.1\n',
         "noblocks.toml": "[fit]\nmax_steps = 3\n",
+        "bigint.toml": '[hysteresis]\nkind = "prandtl_ishlinskii"\nw0 = 1' + "0" * 400 + "\n",
+        "bigsmooth.toml": PI + "smoothing = [1" + "0" * 400 + ", 0.0]\n",
+        "bigrate.toml": PI + "[data]\nsample_rate = 1" + "0" * 400 + "\n",
+        "bigweight.toml": PI + "weights = {displacement = 1e300}\n",
+        "forceweight.toml": PI + "weights = {force = 1.0}\n",
     }
     for name, text in configs.items():
         (d / name).write_text(text)
@@ -149,6 +159,7 @@ def bench(tmp_path_factory):
     assert main(["fit", str(d / "pi.toml"), str(d / "ok.csv"), "--out", str(d / "fits" / "fit"), "--quiet",
                  "--no-figures"]) in (0, 1)
     assert main(["predict", str(d / "fits" / "fit"), str(d / "ok.csv"), "--out", str(d / "pred")]) == 0
+    (d / "fitlink").symlink_to(d / "fits" / "fit")
     assert main(["simulate", str(d / "known.toml"), "--input", str(d / "ok.csv"), "--out", str(d / "sim.csv")]) == 0
     return d
 
@@ -167,7 +178,7 @@ def _predict(model, *data, out="pout", opts=()):
 
 
 def _simulate(cfg, inp, out="sout.csv", opts=()):
-    return lambda d: (["simulate", str(d / cfg), "--input", str(d / inp), "--out", str(d / out), *opts], d / out)
+    return lambda d: (["simulate", str(d / cfg), "--input", str(d / inp), "--out", f"{d}/{out}", *opts], d / out)
 
 
 def _raw(*argv, out=None, cwd=None):
@@ -213,7 +224,7 @@ CASES = {
     "zero excitation": (_fit("pi.toml", "zero.csv"), 2, ["'v_in' is zero in every data file"]),
     "no predicted channel": (_fit("pi.toml", "force.csv"), 2, ["none of the channels the model predicts",
                                                                 "displacement"]),
-    "observer without v_out": (_fit("observer.toml", "ok.csv"), 2, ["'v_out'"]),
+    "observer without v_out": (_fit("observer.toml", "ok.csv"), 2, ["'v_out'", "ok.csv"]),
     "same file twice": (_fit("pi.toml", "ok.csv", "ok.csv"), 2, ["duplicate experiment name(s) ['ok']"]),
     # ---- CONFIG
     "config missing": (_fit("absent.toml", "ok.csv"), 2, ["absent.toml", "does not exist"]),
@@ -320,6 +331,27 @@ CASES = {
                                                 ["slow", "sampled every 0.002 s", "same sampling step"]),
     "predict scored from beyond the record": (_predict("fits/fit", "ok.csv", opts=("--score-from", "5")), 2,
                                               ["ok.csv", "--score-from 5 s leaves fewer than 2 samples"]),
+    "--out a symlink to a fit folder": (_fit_opts("--overwrite", out="fitlink"), 2,
+                                        ["fitlink", "is a symbolic link"]),
+    "--out a dangling symlink": (_fit_opts(out="dangling"), 2, ["dangling", "is a symbolic link"]),
+    "--out a symlink loop": (_fit_opts("--overwrite", out="loop"), 2, ["loop", "is a symbolic link"]),
+    "--max-steps above the bound": (_fit_opts("--max-steps", "100001"), 2, ["--max-steps", "<= 100000"]),
+    "--units twice for a column": (_fit_opts("--units", "displacement=um,displacement=nm"), 2,
+                                   ["--units", "'displacement' is given twice"]),
+    "--group for a CSV file": (_fit_opts("--group", "multisine"), 2, ["ok.csv", "`group`", "HDF5"]),
+    "same file through a symlinked folder": (_fit("pi.toml", "sub/inner.csv", "linked/inner.csv"), 2,
+                                             ["the same data file is given twice", "inner.csv"]),
+    "400-digit integer": (_fit("bigint.toml", "ok.csv"), 2, ["bigint.toml", "[hysteresis] w0", "finite number"]),
+    "400-digit smoothing level": (_fit("bigsmooth.toml", "ok.csv"), 2, ["bigsmooth.toml", "[fit] smoothing"]),
+    "400-digit sample rate": (_fit("bigrate.toml", "ok.csv"), 2, ["bigrate.toml", "[data] sample_rate"]),
+    "channel weight overflowing": (_fit("bigweight.toml", "ok.csv"), 2, ["bigweight.toml", "[fit] weights",
+                                                                         "<= 1e+20"]),
+    "no weight for a target": (_fit("forceweight.toml", "ok.csv"), 2, ["forceweight.toml", "[fit] weights",
+                                                                       "'displacement'"]),
+    "underflowing values": (_fit("pi.toml", "tiny.csv"), 2, ["tiny.csv", "'displacement'", "underflow"]),
+    "denormal drive": (_fit("pi.toml", "denormal.csv"), 2, ["denormal.csv", "'v_in'", "underflow"]),
+    "simulate to a folder-like path": (_simulate("known.toml", "ok.csv", out="sim2.csv/"), 2,
+                                       ["sim2.csv/", "ends with a slash"]),
     "predict bad --units": (_predict("fits/fit", "ok.csv", opts=("--units", "v_in=um")), 2,
                             ["--units", "'um'", "'v_in'", "voltage"]),
     # ---- simulate
@@ -345,7 +377,7 @@ def _snapshot(path):
         return None
     if path.is_file():
         return path.read_bytes()
-    return sorted((str(p.relative_to(path)), p.stat().st_mtime_ns) for p in path.rglob("*"))
+    return sorted((str(p.relative_to(path)), p.lstat().st_mtime_ns) for p in path.rglob("*"))
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -384,6 +416,11 @@ def test_numpy_savetxt_header_and_declared_units(bench, tmp_path, capsys):
     _csv(tmp_path / "savetxt.csv", ["t", "v_in", "displacement"], [t, v, x], comments="# ")
     exp = fitting.load_experiment(tmp_path / "savetxt.csv")
     np.testing.assert_array_equal(exp["displacement"], x)
+    np.savetxt(tmp_path / "spaces.csv", np.column_stack([t, v, x]), header="t v_in displacement")  # the defaults
+    np.testing.assert_allclose(fitting.load_experiment(tmp_path / "spaces.csv")["displacement"], x, rtol=1e-15)
+    with pytest.raises(pj.PiezojaxValueError, match="`max_steps` must be an integer >= 1, got nan"):
+        fitting.fit(pj.PrandtlIshlinskii(np.array([1e-9]), np.array([1.0]), w0=1e-8), fitting.Dataset([exp]),
+                    max_steps=float("nan"))
     _csv(tmp_path / "micro.csv", ["t", "v_in", "displacement"], [t * 1e3, v * 1e3, x * 1e6])
     scaled = fitting.load_experiment(tmp_path / "micro.csv", units={"t": "ms", "v_in": "mV", "displacement": "µm"})
     np.testing.assert_allclose(scaled["displacement"], x, rtol=1e-15)
@@ -463,6 +500,9 @@ def test_leftovers_of_killed_runs_are_removed_and_live_writers_refused(tmp_path)
         with pytest.raises(pj.PiezojaxValueError, match=rf"another process \(pid {live.pid}\) is writing"):
             with fitting.atomic_directory(tmp_path / "run2"):
                 pass
+        with fitting.atomic_directory(tmp_path / "run2.v2") as d:  # another output: not blocked by run2's writer
+            (d / "x").write_text("1")
+        fitting.save_experiment(fitting.Experiment.from_arrays(v_in=np.ones(3), dt=1e-3), tmp_path / "run2.csv")
     finally:
         live.kill()
         live.wait()
@@ -487,6 +527,13 @@ def test_broken_stdout_pipe_keeps_the_status_and_the_outputs(bench, tmp_path):
     assert r.returncode in (0, 1), r.stderr
     assert "Traceback" not in r.stderr and "error" not in r.stderr
     assert (out / "result.json").is_file() and (out / "model.eqx").is_file()
+    for redirect, out2 in ((">&-", tmp_path / "closed"), (">/dev/full", tmp_path / "full")):
+        cmd2 = [*cmd[:-4], "--out", str(out2), "--quiet", "--no-figures"]
+        r = subprocess.run(f"{' '.join(cmd2)} {redirect}", shell=True, executable="/bin/bash", capture_output=False,
+                           stderr=subprocess.PIPE, text=True, timeout=600)
+        assert r.returncode in (0, 1), (redirect, r.stderr)
+        assert "Traceback" not in r.stderr and "error:" not in r.stderr, (redirect, r.stderr)
+        assert (out2 / "result.json").is_file()
 
 
 def test_fit_too_large_for_the_memory_is_refused_before_any_work(bench, tmp_path, capsys, monkeypatch):
