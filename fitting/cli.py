@@ -520,11 +520,9 @@ def _cmd_fit(args) -> int:
     import fitting
     import piezojax as pj
 
-    from ._config import load_config
+    from ._config import MAX_STEPS, StartWarning, load_config
 
     quiet = args.quiet
-    from ._config import MAX_STEPS
-
     if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
         raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
     out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
@@ -546,8 +544,6 @@ def _cmd_fit(args) -> int:
         _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}",
               quiet)
         _info("initial values from the data", quiet)
-        from ._config import StartWarning
-
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", StartWarning)
             params = config.build(dataset)
