@@ -149,6 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--max-steps", type=int, metavar="N", help="Levenberg–Marquardt steps per smoothing level "
                      "(overrides [fit] max_steps)")
     _data_options(fit, "CONFIG")
+    fit.add_argument("--window", metavar="START:STOP",
+                     help="fit only the samples with START <= t < STOP [s] of every file (either side may be empty, "
+                     "e.g. :7 for the first 7 s); score the rest with `piezojax predict ... --score-from 7`")
     fit.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
     fit.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -455,6 +458,20 @@ def _load_data(paths, settings: dict):
     return dataset, messages
 
 
+def _windowed(dataset, window: str):
+    """Every experiment of `dataset` cut to `START <= t < STOP` (`--window START:STOP`, seconds)."""
+    import fitting
+
+    start, sep, stop = window.partition(":")
+    try:
+        bounds = [None if not b.strip() else float(b) for b in (start, stop)]
+    except ValueError:
+        bounds = None
+    if not sep or bounds is None or any(b is not None and b != b for b in bounds):
+        raise _error(f"--window: expected START:STOP in seconds (either may be empty, e.g. :7), got {window!r}")
+    return fitting.Dataset(e.slice(*bounds, name=e.name) for e in dataset)
+
+
 def _check_fit_data(dataset, targets) -> None:
     """Data problems that would otherwise surface deep inside the initialisation, named by file and column."""
     short = [e for e in dataset if e.n < MIN_FIT_SAMPLES]
@@ -530,6 +547,8 @@ def _cmd_fit(args) -> int:
     settings = _data_settings(args, config.data)
     with fitting.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
+        if args.window is not None:
+            dataset = _windowed(dataset, args.window)
         targets = config.fit_targets(dataset)
         if isinstance(config.weights, dict):
             lacking = [c for c in targets if c not in config.weights]
@@ -571,6 +590,7 @@ def _cmd_fit(args) -> int:
                 "weights": result.problem.weights,
                 "outputs": list(config.outputs),
                 "data_settings": settings,
+                "window": args.window,
                 "piezojax_version": pj.__version__,
             },
             "warnings": unit_warnings + start_warnings,
