@@ -411,25 +411,26 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
     _fsync_directory(p.parent)
 
 
-def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None) -> None:
-    """Refuse, before any work, an output directory that must not be created or replaced (see
-    `atomic_directory`)."""
+def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True") -> None:
+    """Refuse, before any work, an output directory that must not be created or replaced (see `atomic_directory`);
+    `option` is how the caller's user asks to overwrite (`"--overwrite"` on the command line)."""
     why = _protected(p)
     if why is not None:
         raise PiezojaxValueError(f"refusing to write the output folder {str(p)!r}: {why}")
     if not p.exists():
         return
     if not p.is_dir():
-        raise PiezojaxValueError(f"cannot create directory {str(p)!r}: a file of that name exists")
+        raise PiezojaxValueError(f"output folder {str(p)!r} is a file")
     if not overwrite:
-        raise PiezojaxValueError(f"output directory {str(p)!r} already exists; pass overwrite=True to replace it")
+        raise PiezojaxValueError(f"output folder {str(p)!r} already exists; pass {option} to replace it")
     if kind is not None:
         found = read_marker(p)
         if found != kind:
-            what = "has no piezojax marker" if found is None else f"holds the output of {found!r}"
+            held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
             raise PiezojaxValueError(
-                f"refusing to replace {str(p)!r}: it {what}, and overwriting replaces only a previous {kind!r} output "
-                f"(a folder with the marker file {MARKER!r}); remove it yourself or choose another output folder"
+                f"refusing to replace {str(p)!r}: it {held}, and {option} replaces only the output of an earlier "
+                f"`piezojax {kind}` (a folder with the marker file {MARKER}); remove it yourself or choose another "
+                "output folder"
             )
 
 

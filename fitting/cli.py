@@ -389,7 +389,7 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
     import fitting
 
     from ._data import SUPPORTED_SUFFIXES, read_file_marker
-    from ._io import MARKER, _protected, read_marker
+    from ._io import _check_replaceable_directory
 
     is_file = command == "simulate"
     what = "output file" if is_file else "output folder"
@@ -417,28 +417,17 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
             raise _error(f"refusing to write the {what} {str(p)!r}: it {'is' if rp == rd else 'holds'} the fitted "
                          f"model folder {str(fit_folder)!r}")
     if not is_file:
-        why = _protected(p)
-        if why is not None:
-            raise _error(f"refusing to write the {what} {str(p)!r}: {why}")
+        _check_replaceable_directory(p, overwrite, command, option="--overwrite")
+        return p
     if not p.exists():
         return p
+    if p.is_dir():
+        raise _error(f"{what} {str(p)!r} is a directory")
     if not overwrite:
         raise _error(f"{what} {str(p)!r} already exists; pass --overwrite to replace it")
-    if is_file:
-        if p.is_dir():
-            raise _error(f"{what} {str(p)!r} is a directory")
-        if read_file_marker(p) != command:
-            raise _error(f"refusing to replace {str(p)!r}: it was not written by `piezojax {command}`, and "
-                         "--overwrite replaces only such a file; remove it yourself or choose another --out")
-    else:
-        if not p.is_dir():
-            raise _error(f"{what} {str(p)!r} is a file")
-        found = read_marker(p)
-        if found != command:
-            held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
-            raise _error(f"refusing to replace {str(p)!r}: it {held}, and --overwrite replaces only the output of an "
-                         f"earlier `piezojax {command}` (a folder with the marker file {MARKER}); remove it yourself "
-                         "or choose another --out")
+    if read_file_marker(p) != command:
+        raise _error(f"refusing to replace {str(p)!r}: it was not written by `piezojax {command}`, and --overwrite "
+                     "replaces only such a file; remove it yourself or choose another --out")
     return p
 
 
