@@ -25,6 +25,7 @@ from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCir
 from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans
 from ._creep.base import AbstractCreep as AbstractCreep
 from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
+from ._creep.lag import LagCreep as LagCreep
 from ._creep.linear import LinearCreep as LinearCreep
 from ._creep.logarithmic import LogarithmicCreep as LogarithmicCreep
 from ._hysteresis.base import AbstractHysteresis as AbstractHysteresis
@@ -38,6 +39,7 @@ from ._hysteresis.play import (
     PlayOperator as PlayOperator,
     StopOperator as StopOperator,
 )
+from ._hysteresis.polynomial import OutputPolynomial as OutputPolynomial
 from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
 from ._hysteresis.preisach import Preisach as Preisach
 from ._linear.base import AbstractLinearSystem as AbstractLinearSystem
@@ -66,6 +68,7 @@ from ._observers.sensor_layer import SensorLayerObserver as SensorLayerObserver
 from ._parametrisation import (
     AbstractReparam as AbstractReparam,
     Bounded as Bounded,
+    Fractions as Fractions,
     OrderedPositive as OrderedPositive,
     Positive as Positive,
     constrain as constrain,

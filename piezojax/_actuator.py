@@ -1,8 +1,9 @@
 """The composed piezoelectric actuator: voltage → hysteresis → creep → dynamics → displacement, plus its charge."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._checks import PiezojaxValueError, check_finite, check_positive, check_scalar, check_signal, check_step
 from ._creep.base import AbstractCreep
@@ -49,6 +50,15 @@ class Actuator(eqx.Module):
     A missing block is the identity (`hysteresis=None`: $\mathcal{H}[V] = V$; `dynamics=None`: $G = 1$); a missing
     creep means no creep (both structures then give $\delta = G[\mathcal{H}[V_{in}]]$).
 
+    Initial state and offset. Before the record the voltage has been 0 long enough for everything to settle, with
+    the hysteresis in its initial state: demagnetised (default), `hysteresis_state` (the operator's state, as its
+    `init()` / `scan` return it), or that state after a *prehistory* excursion $0 \to u_p \to 0$
+    (`prehistory` $= u_p$ [V], one fitted scalar for the remanent polarisation a real actuator keeps from its last
+    use). Its output at $V = 0$ is the remanent value $h_r$; the creep (series: settled at its input $h_r$; parallel:
+    at rest, its input $V$ is 0) and the dynamics (settled at its input $u_r$) start in equilibrium, so the model
+    reads $\delta = b + G(0)\,u_r + G[u - u_r]$ with $b$ = `offset`, the displacement sensor's zero (it does not
+    enter the charge). With neither a prehistory nor a state, $h_r = u_r = 0$ and the model starts from rest.
+
     Charge and current (paper 003 after Goldfarb & Celanovic, $q = C V_p + T_{em} x$; paper 000 $Q = C_r V_{in} +
     Q_\delta$ with $Q_\delta \propto \delta$): $q_k = C_p V_k + T\,\delta_k$, so the displacement-coupled charge
     carries the hysteresis, creep and dynamics of $\delta$. The current is the charge increment over the sample,
@@ -70,6 +80,10 @@ class Actuator(eqx.Module):
     - `capacitance`: $C_p \ge 0$ [F], finite.
     - `coupling`: $T$ [C/m], the charge per unit displacement, finite (default 0).
     - `structure`: `"parallel"` or `"series"` (static).
+    - `offset`: $b$ [m], the displacement sensor's zero, finite (default 0).
+    - `prehistory`: $u_p$ [V], finite, or `None` (default) for no excursion before the record. Needs a hysteresis.
+    - `hysteresis_state`: the hysteresis state before the prehistory (a PyTree like `hysteresis.init()`), or
+      `None` (default) for demagnetised. Needs a hysteresis.
 
     **Example:**
 
@@ -85,6 +99,9 @@ class Actuator(eqx.Module):
     dynamics: AbstractLinearSystem | None
     capacitance: Float[Array, ""]
     coupling: Float[Array, ""]
+    offset: Float[Array, ""]
+    prehistory: Float[Array, ""] | None
+    hysteresis_state: PyTree[Array] | None
     structure: str = eqx.field(static=True)
 
     def __init__(
@@ -95,6 +112,10 @@ class Actuator(eqx.Module):
         capacitance: ArrayLike = 0.0,
         coupling: ArrayLike = 0.0,
         structure: str = "parallel",
+        *,
+        offset: ArrayLike = 0.0,
+        prehistory: ArrayLike | None = None,
+        hysteresis_state: PyTree[ArrayLike] | None = None,
     ):
         if hysteresis is not None and not isinstance(hysteresis, AbstractHysteresis):
             raise PiezojaxValueError(
@@ -113,7 +134,7 @@ class Actuator(eqx.Module):
         if structure not in _STRUCTURES:
             raise PiezojaxValueError(f"`structure` must be one of {_STRUCTURES}, got {structure!r}")
         # plain numbers follow the blocks' dtype (float32 blocks stay float32)
-        typed = [x for x in (capacitance, coupling) if hasattr(x, "dtype")]
+        typed = [x for x in (capacitance, coupling, offset, prehistory) if hasattr(x, "dtype")]
         dtype = module_float_dtype((hysteresis, creep, dynamics), *typed)
         self.hysteresis = hysteresis
         self.creep = creep
@@ -121,21 +142,42 @@ class Actuator(eqx.Module):
         capacitance = check_scalar(capacitance, "capacitance", dtype, finite=False)
         self.capacitance = check_positive(capacitance, "capacitance", allow_zero=True)
         self.coupling = check_scalar(coupling, "coupling", dtype)
+        self.offset = check_scalar(offset, "offset", dtype)
+        if (prehistory is not None or hysteresis_state is not None) and hysteresis is None:
+            name = "prehistory" if prehistory is not None else "hysteresis_state"
+            raise PiezojaxValueError(f"`{name}` sets the hysteresis' initial state; the actuator has no hysteresis")
+        self.prehistory = None if prehistory is None else check_scalar(prehistory, "prehistory", dtype)
+        if hysteresis_state is not None:
+            hysteresis_state = _check_state(hysteresis, hysteresis_state)
+        self.hysteresis_state = hysteresis_state
         self.structure = structure
 
     def check(self) -> "Actuator":
         """`self` with the value checks of `capacitance` and `coupling` attached (`check_value`); each block checks
         its own parameters when it runs."""
         c = check_positive(self.capacitance, "capacitance", allow_zero=True)
-        return eqx.tree_at(lambda m: (m.capacitance, m.coupling), self, (c, check_finite(self.coupling, "coupling")))
+        checked = (c, check_finite(self.coupling, "coupling"), check_finite(self.offset, "offset"))
+        out = eqx.tree_at(lambda m: (m.capacitance, m.coupling, m.offset), self, checked)
+        if self.prehistory is not None:
+            out = eqx.tree_at(lambda m: m.prehistory, out, check_finite(self.prehistory, "prehistory"))
+        return out
+
+    def initial_state(self) -> tuple[PyTree[Array] | None, Array]:
+        """The hysteresis state at the start of the record and the remanent hysteresis output $h_r$ at $V = 0$.
+
+        **Returns:** `(state, h_r)`; `(None, 0)` when the actuator starts from rest (no prehistory, no state).
+        """
+        return self._initial(module_float_dtype(self))
 
     def drive(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
         r"""The input of the dynamics: $\mathcal{H}[V] + \mathcal{C}[V]$ (parallel) or $\mathcal{C}[\mathcal{H}[V]]$
-        (series); equal to the quasi-static displacement when $G(0) = 1$. Same arguments as `simulate`."""
-        return self._drive(*self._prepare(v_in, dt, hold), hold)
+        (series), from the initial state; equal to the quasi-static displacement less the offset when $G(0) = 1$.
+        Same arguments as `simulate`."""
+        m, v, dt = self._prepare(v_in, dt, hold)
+        return m._drive(m, v, dt, hold, m._initial(v.dtype))[0]
 
     def simulate(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> ActuatorOutput:
-        """Simulate one experiment from rest (demagnetised hysteresis, creep and dynamics at rest, $V = 0$ before).
+        """Simulate one experiment from the initial state (default: from rest, demagnetised, $V = 0$ before).
 
         **Arguments:**
 
@@ -147,11 +189,19 @@ class Actuator(eqx.Module):
         **Returns:** an `ActuatorOutput` with `displacement`, `charge`, `current`, each of shape `(time,)`.
         """
         m, v, dt = self._prepare(v_in, dt, hold)
-        u = m._drive(m, v, dt, hold)
-        delta = u if m.dynamics is None else m.dynamics.simulate(u, dt, hold=hold)
+        initial = m._initial(v.dtype)
+        u, u_r = m._drive(m, v, dt, hold, initial)
+        if m.dynamics is None:
+            delta = u
+        elif initial[0] is None:
+            delta = m.dynamics.simulate(u, dt, hold=hold)
+        else:
+            delta = m.dynamics.simulate(u, dt, x0=m.dynamics.equilibrium_state(u_r), hold=hold)
         charge = m.capacitance * v + m.coupling * delta
-        current = jnp.diff(charge, prepend=jnp.zeros((1,), charge.dtype)) / dt
-        return ActuatorOutput(delta, charge, current)
+        # before the record: V = 0 and the displacement at its remanent value (the charge's zero)
+        charge0 = m.coupling * (u_r if m.dynamics is None or initial[0] is None else m.dynamics.dc_gain() * u_r)
+        current = jnp.diff(charge, prepend=charge0[None]) / dt
+        return ActuatorOutput(delta + m.offset, charge, current)
 
     def __call__(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> ActuatorOutput:
         """Same as `simulate`."""
@@ -167,11 +217,45 @@ class Actuator(eqx.Module):
         dt = check_step(dt, "dt", dtype)
         return cast_module(self, dtype).check(), v, dt
 
+    def _initial(self, dtype):
+        zero = jnp.zeros((), dtype)
+        if self.hysteresis is None or (self.prehistory is None and self.hysteresis_state is None):
+            return None, zero
+        path = jnp.zeros((1,), dtype)
+        if self.prehistory is not None:
+            path = jnp.stack([self.prehistory.astype(dtype), zero])
+        state, h = self.hysteresis.scan(path, self.hysteresis_state)
+        return state, h[-1]
+
     @staticmethod
-    def _drive(m: "Actuator", v: Array, dt: Array, hold: str) -> Array:
-        h = v if m.hysteresis is None else m.hysteresis(v)
+    def _drive(m: "Actuator", v: Array, dt: Array, hold: str, initial) -> tuple[Array, Array]:
+        """The dynamics' input and its value $u_r$ before the record."""
+        state, h_r = initial
+        h = v if m.hysteresis is None else m.hysteresis.scan(v, state)[1]
         if m.creep is None:
-            return h
+            return h, h_r
         if m.structure == "series":
-            return m.creep.simulate(h, dt, hold=hold)
-        return h + m.creep.simulate(v, dt, hold=hold)
+            if state is None:
+                return m.creep.simulate(h, dt, hold=hold), h_r
+            return m.creep.simulate(h, dt, hold=hold, u0=h_r), m.creep.settled_gain() * h_r
+        return h + m.creep.simulate(v, dt, hold=hold), h_r
+
+
+def _check_state(hysteresis: AbstractHysteresis, state):
+    """`state` as arrays of `hysteresis.init()`'s structure, shapes and dtype, or one clear error."""
+    ref = hysteresis.init()
+    try:
+        arrays = jax.tree_util.tree_map(lambda r, x: jnp.asarray(x, r.dtype), ref, state)
+    except (ValueError, TypeError) as e:
+        raise PiezojaxValueError(
+            f"`hysteresis_state` must have the structure of `hysteresis.init()` "
+            f"({jax.tree_util.tree_structure(ref)}), got {jax.tree_util.tree_structure(state)}"
+        ) from e
+    for i, (r, x) in enumerate(zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(arrays), strict=True)):
+        if r.shape != x.shape:
+            raise PiezojaxValueError(
+                f"`hysteresis_state` leaf {i} must have shape {tuple(r.shape)} (as `hysteresis.init()`), "
+                f"got {tuple(x.shape)}"
+            )
+        check_finite(x, "hysteresis_state")
+    return arrays

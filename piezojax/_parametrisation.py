@@ -146,6 +146,40 @@ class Bounded(AbstractReparam):
         return self.low + (self.high - self.low) * jax.nn.sigmoid(self.raw)
 
 
+class Fractions(AbstractReparam):
+    r"""Positive fractions with a sum below one (e.g. `LagCreep.fractions`): $x_i = e^{r_i}/(1 + \sum_j e^{r_j})$.
+
+    Every `raw` gives $x_i > 0$ and $\sum_i x_i < 1$ (the remainder $1 - \sum x_i$ is the implicit last share).
+
+    **Arguments:**
+
+    - `raw`: unconstrained 1-D array.
+    """
+
+    raw: Array
+
+    def __init__(self, raw: ArrayLike):
+        self.raw = check_finite(as_float_array(raw, "raw"), "raw")
+        if self.raw.ndim != 1:
+            raise PiezojaxValueError(f"`raw` must be 1-D for Fractions, got shape {self.raw.shape}")
+
+    @classmethod
+    def from_value(cls, value: ArrayLike) -> "Fractions":
+        """Wrap a 1-D `value` with every entry > 0 and a sum < 1."""
+        value = check_finite(as_float_array(value, "value"), "value")
+        if value.ndim != 1:
+            raise PiezojaxValueError(f"`value` must be 1-D for Fractions, got shape {value.shape}")
+        value = check_value(
+            value, lambda x: jnp.all(x > 0) & (jnp.sum(x) < 1), "`value` must be > 0 with a sum < 1 for Fractions"
+        )
+        return cls(jnp.log(value) - jnp.log1p(-jnp.sum(value)))
+
+    def unwrap(self) -> Array:
+        # softmax over [raw, 0] without the last entry, computed stably
+        z = jnp.concatenate([self.raw, jnp.zeros((1,), self.raw.dtype)])
+        return jax.nn.softmax(z)[:-1]
+
+
 def _is_reparam(x: Any) -> bool:
     return isinstance(x, AbstractReparam)
 

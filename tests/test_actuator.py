@@ -128,7 +128,7 @@ def jac_vs_fd(fn, model, rel=1e-5):
     jac = np.asarray(jax.jit(jax.jacfwd(f))(flat))
     fd = np.zeros_like(jac)
     for i in range(flat.shape[0]):
-        h = rel * abs(float(flat[i]))
+        h = rel * (abs(float(flat[i])) or 1.0)  # a parameter at 0 (the offset) gets an absolute step
         e = jnp.zeros_like(flat).at[i].set(h)
         d1 = np.asarray(f(flat + e)) - np.asarray(f(flat - e))
         d2 = np.asarray(f(flat + 2 * e)) - np.asarray(f(flat - 2 * e))
@@ -146,8 +146,8 @@ def test_jacfwd_wrt_all_parameters_matches_fd():
         return jnp.concatenate([out.displacement / 1e-5, out.charge / 1e-8, out.current / 1e-5])
 
     jac, fd = jac_vs_fd(outputs, act)
-    # PI: 3 weights, 3 thresholds, w0, smoothing; KV: 2 + 2; G: gain, omega, zeta; capacitance, coupling
-    assert jac.shape == (900, 17)
+    # PI: 3 weights, 3 thresholds, w0, smoothing; KV: 2 + 2; G: gain, omega, zeta; capacitance, coupling, offset
+    assert jac.shape == (900, 18)
     scale = np.abs(fd).max(axis=0)
     assert np.all(scale > 0)  # every parameter moves some output
     np.testing.assert_allclose(jac / scale, fd / scale, rtol=0, atol=1e-6)

@@ -3,9 +3,10 @@
 import abc
 
 import equinox as eqx
+import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, check_signal, check_step
+from .._checks import PiezojaxValueError, check_scalar, check_signal, check_step
 from .._custom_types import Signal, SignalLike
 from .._hysteresis.base import cast_module, module_float_dtype
 
@@ -21,7 +22,11 @@ class AbstractCreep(eqx.Module):
 
     `simulate(u, dt)` (also `__call__`) returns the output samples; `step_response(t)` the analytic $h(t)$;
     `instantaneous_gain()` is $h(0^+)$, which is 1 for a DC-normalised creep used in series after the hysteresis
-    and 0 for a creep-only part used in parallel with it (see `Actuator`).
+    and 0 for a creep-only part used in parallel with it (see `Actuator`); `settled_gain()` is $h(\infty)$, the
+    output per unit of an input held long enough for the creep to settle.
+
+    Initial state: `simulate(u, dt, u0=c)` starts the block settled at the input $c$ (held since long before the
+    record): the output is $h(\infty)\,c + \mathcal{C}[u - c]$.
     """
 
     @abc.abstractmethod
@@ -36,19 +41,31 @@ class AbstractCreep(eqx.Module):
     def instantaneous_gain(self) -> Array:
         """$h(0^+)$: the part of the response that follows the input without delay."""
 
+    def settled_gain(self) -> Array:
+        r"""$h(\infty)$: the output per unit of an input held until the creep has settled (the static gain).
+
+        Default: `step_response(inf)`. The logarithmic law never settles and overrides this (see its docstring)."""
+        return self.step_response(jnp.asarray(jnp.inf, self._dtype()))
+
+    def _dtype(self):
+        return module_float_dtype(self)
+
     def check(self) -> "AbstractCreep":
         """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
         `eqx.error_if` if traced), run by `simulate` outside the scan. Default: none."""
         return self
 
-    def simulate(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
-        """Response to the sampled input `u` (step `dt`), from rest.
+    def simulate(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh", u0: ArrayLike | None = None) -> Signal:
+        """Response to the sampled input `u` (step `dt`), from rest or settled at the input `u0`.
 
         **Arguments:**
 
         - `u`: 1-D real, finite input samples, shape `(time,)`; use `jax.vmap` for a batch.
         - `dt`: the sample step (scalar > 0).
         - `hold`: how the input moves between samples: `"zoh"` (held constant) or `"foh"` (linear).
+        - `u0`: the input held before the record, long enough for the creep to settle (a real, finite scalar):
+          the output is `settled_gain() * u0 + C[u - u0]`. Default `None`: at rest with zero input (the same as
+          `u0=0`).
 
         **Returns:** the output samples, shape `(time,)`.
         """
@@ -58,8 +75,11 @@ class AbstractCreep(eqx.Module):
         u = check_signal(u, "u", dtype)
         dt = check_step(dt, "dt", dtype)
         block = cast_module(self, dtype).check()
-        return block._simulate(u, dt, hold)
+        if u0 is None:
+            return block._simulate(u, dt, hold)
+        u0 = check_scalar(u0, "u0", dtype)
+        return block.settled_gain() * u0 + block._simulate(u - u0, dt, hold)
 
-    def __call__(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
+    def __call__(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh", u0: ArrayLike | None = None) -> Signal:
         """Same as `simulate`."""
-        return self.simulate(u, dt, hold)
+        return self.simulate(u, dt, hold, u0)

@@ -56,6 +56,10 @@ class LinearCreep(AbstractCreep):
         """
         return cls(StableTransferFunction.from_tf(num, den, dc_normalised=dc_normalised))
 
+    def settled_gain(self) -> Array:
+        """$F_C(0)$, the static gain of the transfer function."""
+        return self.system.dc_gain()
+
     def step_response(self, t: ArrayLike) -> Array:
         A, B, C, D = self.system.state_space()
         t = jnp.asarray(t, A.dtype)

@@ -117,6 +117,14 @@ class LogarithmicCreep(AbstractCreep):
     def instantaneous_gain(self) -> Array:
         return self.gain * self._offset()
 
+    def settled_gain(self) -> Array:
+        r"""The logarithmic law never settles ($h(t) \to \infty$); an input held since long before the record has
+        crept by a constant, which this block does not know. `settled_gain()` is the instantaneous gain, so
+        `simulate(u, dt, u0=c)` is `instantaneous_gain() * c + C[u - c]` and the unknown constant is left to the
+        model's output offset (the creep rate of an input held for a time $T$ is $\propto 1/T$, negligible for
+        $T$ much longer than the record)."""
+        return self.instantaneous_gain()
+
     def _simulate(self, u: Array, dt: Array, hold: str) -> Array:
         n = u.shape[0]
         tau = dt * jnp.arange(n, dtype=u.dtype)

@@ -47,6 +47,18 @@ class AbstractLinearSystem(eqx.Module):
             return D
         return D - jnp.dot(C, jnp.linalg.solve(A, B))
 
+    def equilibrium_state(self, u0: ArrayLike) -> Float[Array, " n"]:
+        r"""The state of `state_space()` at rest under the constant input `u0`: $x = -A^{-1} B u_0$.
+
+        `simulate(u, dt, x0=sys.equilibrium_state(c))` starts the system settled at the input $c$ (output
+        $G(0)\,c$ until the input moves). Needs $A$ invertible (no pole at 0).
+        """
+        A, B, _, _ = self.state_space()
+        u0 = jnp.asarray(u0, A.dtype)
+        if A.shape[0] == 0:
+            return jnp.zeros((0,), A.dtype)
+        return -jnp.linalg.solve(A, B) * u0
+
     def frequency_response(self, w: Float[ArrayLike, " freq"]) -> Complex[Array, " freq"]:
         r"""$G(j\omega) = C (j\omega I - A)^{-1} B + D$ at angular frequencies `w` (rad/s)."""
         A, B, C, D = self.state_space()
