@@ -30,10 +30,10 @@ from piezojax._checks import PiezojaxValueError
 from ._data import CHANNELS, parse_columns, parse_units
 
 HYSTERESIS_KINDS = ("prandtl_ishlinskii", "bouc_wen", "maxwell_slip", "none")
-CREEP_KINDS = ("kelvin_voigt", "logarithmic", "none")
+CREEP_KINDS = ("kelvin_voigt", "logarithmic", "lag", "none")
 OBSERVER_KINDS = ("current_integration",)
 DYNAMICS_ORDERS = (0, 1, 2, 3, 4)
-TABLES = ("hysteresis", "creep", "dynamics", "charge", "observer", "data", "fit")
+TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "observer", "data", "fit")
 
 # Upper bounds on the sizes a CONFIG may ask for, checked before any work: beyond them the initialisation (dense
 # NNLS over plays x samples) or the fit's memory grows past what the method is meant for.
@@ -43,6 +43,7 @@ MAX_CREEP_ORDER = 10
 MAX_SUBSTEPS = 64
 MAX_STEPS = 100_000
 MAX_LEVELS = 10
+MAX_POLYNOMIAL = 6
 MAX_WEIGHT = 1e20  # a channel weight beyond it squares past float64 with the residuals it scales
 
 
@@ -56,17 +57,20 @@ def _finite_number(x) -> bool:
         return False
 
 # keys allowed per table (and per kind), besides `kind`
+_POLYNOMIAL_KEYS = ("polynomial", "coefficients", "polynomial_scale")
 _HYSTERESIS_KEYS = {
-    "prandtl_ishlinskii": ("plays", "smoothing", "weights", "thresholds", "w0"),
-    "bouc_wen": ("smoothing", "A", "beta", "gamma", "n", "d", "method", "substeps"),
-    "maxwell_slip": ("elements", "smoothing", "stiffness", "breakaway"),
+    "prandtl_ishlinskii": ("plays", "smoothing", "weights", "thresholds", "w0") + _POLYNOMIAL_KEYS,
+    "bouc_wen": ("smoothing", "A", "beta", "gamma", "n", "d", "method", "substeps") + _POLYNOMIAL_KEYS,
+    "maxwell_slip": ("elements", "smoothing", "stiffness", "breakaway") + _POLYNOMIAL_KEYS,
     "none": (),
 }
 _CREEP_KEYS = {
-    "kelvin_voigt": ("order", "stiffnesses", "time_constants"),
-    "logarithmic": ("gamma", "t0", "gain"),
+    "kelvin_voigt": ("order", "stiffnesses", "time_constants", "structure"),
+    "logarithmic": ("gamma", "t0", "gain", "structure"),
+    "lag": ("lags", "fractions", "time_constants", "structure"),
     "none": (),
 }
+_STATE_KEYS = ("offset", "prehistory")
 _DYNAMICS_KEYS = ("order", "gain", "omega", "zeta", "poles")
 _CHARGE_KEYS = ("capacitance", "coupling")
 _OBSERVER_REQUIRED = (
@@ -233,6 +237,9 @@ class ModelConfig:
       `observer` (the `[observer]` options, or `None` for a `pj.Actuator`).
     - `free`, `weights`, `smoothing`, `max_steps`, `targets`, `method`: the `[fit]` options (`free=None`: the default
       set of `default_free`; `method`: `fitting.solve`'s, default `"levenberg_marquardt"`).
+    - `state`: the `[state]` options of an actuator: `offset` and `prehistory`, each `True` (in the model, start
+      from the data), `False` (not in the model) or a number (in the model, this start value). Default: the offset
+      in the model, no prehistory.
     - `data`: the `[data]` options for reading the files — `units`, `columns`, `group`, `sample_rate`,
       `ignore_extra`, as the keyword arguments of `fitting.load_experiment` (only those the file gives).
     """
@@ -254,12 +261,37 @@ class ModelConfig:
     targets: tuple[str, ...] | None
     method: str = "levenberg_marquardt"
     data: dict = dataclasses.field(default_factory=dict)
+    state: dict = dataclasses.field(default_factory=dict)
 
     # -------------------------------------------------------------------------------------------- structure
 
     @property
     def is_observer(self) -> bool:
         return self.observer is not None
+
+    @property
+    def polynomial(self) -> int:
+        """The degree of the hysteresis' output polynomial (0: none)."""
+        return self.hysteresis_options.get("polynomial", 0)
+
+    @property
+    def creep_structure(self) -> str:
+        """`"series"` (the creep after the hysteresis) or `"parallel"` (beside it, driven by the voltage)."""
+        return self.creep_options.get("structure", "series" if self.creep == "lag" else "parallel")
+
+    def _offset(self):
+        return False if self.is_observer else self.state.get("offset", True)
+
+    def _prehistory(self):
+        return False if self.is_observer else self.state.get("prehistory", False)
+
+    def _operator_path(self) -> str:
+        """The path of the hysteresis operator's parameters: `hysteresis` (`hysteresis.hysteresis` inside an output
+        polynomial)."""
+        return "hysteresis.hysteresis" if self.polynomial else "hysteresis"
+
+    def _operator(self, m):
+        return m.hysteresis.hysteresis if self.polynomial else m.hysteresis
 
     @property
     def outputs(self) -> tuple[str, ...]:
@@ -306,19 +338,23 @@ class ModelConfig:
         cutoff: identified from the circuit, and scaling all of them with $\\beta$ and the operators leaves the
         estimates unchanged)."""
         paths: list[str] = []
-        h = self.hysteresis
+        h, hp = self.hysteresis, self._operator_path()
         if h == "prandtl_ishlinskii":
-            paths += ["hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0"]
+            paths += [f"{hp}.weights", f"{hp}.thresholds", f"{hp}.w0"]
         elif h == "bouc_wen":
-            paths += ["hysteresis.A", "hysteresis.beta", "hysteresis.gamma", "hysteresis.d"]
+            paths += [f"{hp}.A", f"{hp}.beta", f"{hp}.gamma", f"{hp}.d"]
             if self._bouc_wen_method() == "rk4":
-                paths.append("hysteresis.n")
+                paths.append(f"{hp}.n")
         elif h == "maxwell_slip":
-            paths += ["hysteresis.stiffness", "hysteresis.breakaway"]
+            paths += [f"{hp}.stiffness", f"{hp}.breakaway"]
+        if self.polynomial:
+            paths.append("hysteresis.coefficients")
         if self.creep == "kelvin_voigt":
             paths += ["creep.stiffnesses", "creep.time_constants"]
         elif self.creep == "logarithmic":
             paths += ["creep.gamma", "creep.t0"]
+        elif self.creep == "lag":
+            paths += ["creep.fractions", "creep.time_constants"]
         if self.is_observer:
             paths += ["force_sensitivity", "displacement_coefficient", "stiffness"]
             if h == "none":
@@ -333,6 +369,10 @@ class ModelConfig:
             paths.append("dynamics.poles")
         if self.charge is not None:
             paths += ["capacitance", "coupling"]
+        if self._offset() is not False:
+            paths.append("offset")
+        if self._prehistory() is not False:
+            paths.append("prehistory")
         return tuple(paths)
 
     def fit_free(self, targets: tuple[str, ...] | None = None) -> list[str]:
@@ -368,7 +408,10 @@ class ModelConfig:
             "maxwell_slip": ("stiffness", "breakaway"),
             "none": (),
         }[self.hysteresis]
-        c = {"kelvin_voigt": ("stiffnesses", "time_constants"), "logarithmic": ("gamma", "t0"), "none": ()}[self.creep]
+        c = {"kelvin_voigt": ("stiffnesses", "time_constants"), "logarithmic": ("gamma", "t0"),
+             "lag": ("fractions", "time_constants"), "none": ()}[self.creep]
+        if self.polynomial:
+            h = h + ("coefficients",)
         out = [("hysteresis", self.hysteresis_options, h), ("creep", self.creep_options, c)]
         if self.is_observer:
             return out
@@ -377,6 +420,8 @@ class ModelConfig:
         out.append(("dynamics", self.dynamics_options, d))
         if self.charge is not None:
             out.append(("charge", self.charge, ("capacitance", "coupling")))
+        if self._prehistory() is True:
+            out.append(("state", {"prehistory": None}, ("prehistory",)))
         return out
 
     def build(self, dataset=None, *, require_values: bool = False):
@@ -413,33 +458,61 @@ class ModelConfig:
                 other = None
             if other is not None and _start_error(other, dataset) < _start_error(model, dataset):
                 model = other
+            model = self._start_state(model, dataset)
         return self._constrain(model)
+
+    def _start_state(self, model, dataset):
+        """Data-driven starts of the actuator's offset (the mean residual) and prehistory (the best of a grid of
+        excursions from -max|v| to max|v|, each with its offset), where the file gives no number."""
+        offset, pre = self._offset(), self._prehistory()
+        if self.is_observer or (offset is not True and pre is not True):
+            return model
+        recs = [e for e in dataset if e.has("displacement")]
+        if not recs:
+            return model
+        sim = eqx.filter_jit(lambda m, v, dt: m.simulate(v, dt).displacement)
+
+        def with_offset(m):
+            if offset is not True:
+                return m
+            res = np.concatenate([np.asarray(e["displacement"]) - np.asarray(sim(m, jnp.asarray(e.v_in),
+                                                                                   jnp.asarray(e.dt)))
+                                  for e in recs])
+            b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
+            return eqx.tree_at(lambda a: a.offset, m, jnp.asarray(b + float(m.offset), m.offset.dtype))
+
+        if pre is not True:
+            return with_offset(model)
+        vmax = max(float(np.max(np.abs(e.v_in))) for e in recs)
+        best, best_err = None, np.inf
+        for u in vmax * np.linspace(-1.0, 1.0, 9):
+            cand = with_offset(eqx.tree_at(lambda a: a.prehistory, model, jnp.asarray(u, model.prehistory.dtype)))
+            err = _start_error(cand, recs)
+            if best is None or err < best_err:
+                best, best_err = cand, err
+        return best
 
     def _assemble(self, values: "_InitialValues"):
         f64 = lambda x: jnp.asarray(np.asarray(x, np.float64))  # noqa: E731
         ho = self.hysteresis_options
         smoothing = ho.get("smoothing", 0.0)
-        hyst = None
-        if self.hysteresis == "prandtl_ishlinskii":
-            v = values.hysteresis()
-            hyst = pj.PrandtlIshlinskii(f64(v["weights"]), f64(v["thresholds"]), w0=f64(v["w0"]),
-                                        smoothing=f64(smoothing))
-        elif self.hysteresis == "bouc_wen":
-            v = values.hysteresis()
-            n = 1.0 if ho.get("n") is None else ho["n"]
-            hyst = pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(n), f64(v["d"]),
-                              smoothing=f64(smoothing), method=self._bouc_wen_method(),
-                              substeps=ho.get("substeps", 8))
-        elif self.hysteresis == "maxwell_slip":
-            v = values.hysteresis()
-            hyst = pj.MaxwellSlip(f64(v["stiffness"]), f64(v["breakaway"]), smoothing=f64(smoothing))
+        hyst = self._assemble_operator(values, f64, ho, smoothing)
+        if hyst is not None and self.polynomial:
+            coefficients = ho.get("coefficients")
+            coefficients = np.zeros(self.polynomial - 1) if coefficients is None else coefficients
+            hyst = pj.OutputPolynomial(hyst, f64(coefficients), f64(values.polynomial_scale()))
         creep = None
         if self.creep == "kelvin_voigt":
             v = values.creep()
-            creep = pj.KelvinVoigtCreep(f64(v["stiffnesses"]), f64(v["time_constants"]), k0=None)
+            creep = pj.KelvinVoigtCreep(f64(v["stiffnesses"]), f64(v["time_constants"]),
+                                        k0=None if self.creep_structure == "parallel" else f64(1.0))
         elif self.creep == "logarithmic":
             v = values.creep()
-            creep = pj.LogarithmicCreep(f64(v["gamma"]), f64(v["t0"]), gain=f64(v["gain"]), instantaneous=False)
+            creep = pj.LogarithmicCreep(f64(v["gamma"]), f64(v["t0"]), gain=f64(v["gain"]),
+                                        instantaneous=self.creep_structure == "series")
+        elif self.creep == "lag":
+            v = values.creep()
+            creep = pj.LagCreep(f64(v["fractions"]), f64(v["time_constants"]))
         if self.is_observer:
             o = self.observer
             fc = o.get("filter_cutoff")
@@ -461,27 +534,51 @@ class ModelConfig:
         cap = coup = 0.0
         if self.charge is not None:
             cap, coup = values.charge()
-        return pj.Actuator(hyst, creep, dyn, capacitance=f64(cap), coupling=f64(coup))
+        offset, pre = self._offset(), self._prehistory()
+        offset = 0.0 if isinstance(offset, bool) else offset
+        pre = None if pre is False else (0.0 if pre is True else pre)
+        return pj.Actuator(hyst, creep, dyn, capacitance=f64(cap), coupling=f64(coup), structure=self.creep_structure,
+                           offset=f64(offset), prehistory=None if pre is None else f64(pre))
+
+    def _assemble_operator(self, values, f64, ho, smoothing):
+        hyst = None
+        if self.hysteresis == "prandtl_ishlinskii":
+            v = values.hysteresis()
+            hyst = pj.PrandtlIshlinskii(f64(v["weights"]), f64(v["thresholds"]), w0=f64(v["w0"]),
+                                        smoothing=f64(smoothing))
+        elif self.hysteresis == "bouc_wen":
+            v = values.hysteresis()
+            n = 1.0 if ho.get("n") is None else ho["n"]
+            hyst = pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(n), f64(v["d"]),
+                              smoothing=f64(smoothing), method=self._bouc_wen_method(),
+                              substeps=ho.get("substeps", 8))
+        elif self.hysteresis == "maxwell_slip":
+            v = values.hysteresis()
+            hyst = pj.MaxwellSlip(f64(v["stiffness"]), f64(v["breakaway"]), smoothing=f64(smoothing))
+        return hyst
 
     def _constrain(self, model):
         c = pj.constrain
-        h = self.hysteresis
+        h, H = self.hysteresis, self._operator
         if h == "prandtl_ishlinskii":
-            model = c(model, lambda m: m.hysteresis.weights, pj.Positive)
-            model = c(model, lambda m: m.hysteresis.w0, pj.Positive)
-            model = c(model, lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+            model = c(model, lambda m: H(m).weights, pj.Positive)
+            model = c(model, lambda m: H(m).w0, pj.Positive)
+            model = c(model, lambda m: H(m).thresholds, pj.OrderedPositive)
         elif h == "bouc_wen":
-            model = c(model, lambda m: m.hysteresis.A, pj.Positive)
-            model = c(model, lambda m: m.hysteresis.beta, pj.Positive)
-            model = c(model, lambda m: m.hysteresis.n, pj.Positive)
+            model = c(model, lambda m: H(m).A, pj.Positive)
+            model = c(model, lambda m: H(m).beta, pj.Positive)
+            model = c(model, lambda m: H(m).n, pj.Positive)
         elif h == "maxwell_slip":
-            model = c(model, lambda m: m.hysteresis.stiffness, pj.Positive)
-            model = c(model, lambda m: m.hysteresis.breakaway, pj.Positive)
+            model = c(model, lambda m: H(m).stiffness, pj.Positive)
+            model = c(model, lambda m: H(m).breakaway, pj.Positive)
         if self.creep == "kelvin_voigt":
             model = c(model, lambda m: m.creep.stiffnesses, pj.Positive)
             model = c(model, lambda m: m.creep.time_constants, pj.Positive)
         elif self.creep == "logarithmic":
             model = c(model, lambda m: m.creep.t0, pj.Positive)
+        elif self.creep == "lag":
+            model = c(model, lambda m: m.creep.fractions, pj.Fractions)
+            model = c(model, lambda m: m.creep.time_constants, pj.Positive)
         if self.is_observer:
             model = c(model, lambda m: m.force_sensitivity, pj.Positive)
             model = c(model, lambda m: m.stiffness, pj.Positive)
@@ -568,7 +665,8 @@ class _InitialValues:
             return self._cold if isinstance(self._cold, pj.Actuator) else None
         self._cold = False
         if (self.dataset is None or cfg.is_observer or cfg.hysteresis != "prandtl_ishlinskii"
-                or cfg.creep not in ("kelvin_voigt", "none") or cfg.dynamics_order % 2):
+                or cfg.creep not in ("kelvin_voigt", "none") or cfg.creep_structure != "parallel"
+                or cfg.dynamics_order % 2):
             return None
         try:
             from ._initialise import cold_start_actuator
@@ -701,7 +799,33 @@ class _InitialValues:
             else:
                 out["gain"] = make()["gain"]
             return out
+        if cfg.creep == "lag":
+            n = o.get("lags", 1)
+
+            def make():
+                if self.dataset is None:
+                    return {"fractions": np.full(n, 0.1 / n), "time_constants": np.geomspace(1e-2, 1.0, n)}
+                dt = min(e.dt for e in self.dataset)
+                span = max(e.n * e.dt for e in self.dataset)
+                # 20 % of the response lagging, split evenly; lags from 50 samples to a tenth of the longest record
+                lo = 50 * dt
+                taus = np.array([lo]) if n == 1 else np.geomspace(lo, max(span / 10, 2 * lo), n)
+                return {"fractions": np.full(n, 0.2 / n), "time_constants": taus}
+
+            return self._explicit_or(o, ("fractions", "time_constants"), make)
         raise AssertionError(cfg.creep)
+
+    def polynomial_scale(self) -> float:
+        """The output polynomial's scale: explicit, else the largest deviation of the measured output from its
+        mean (so the coefficients are of order one), else 1."""
+        s = self.config.hysteresis_options.get("polynomial_scale")
+        if s is not None:
+            return s
+        if self.dataset is None:
+            return 1.0
+        ys = [y for _, y, _ in self._records()]
+        dev = max(float(np.max(np.abs(y - np.mean(y)))) for y in ys)
+        return dev if dev > 0 else 1.0
 
     def dynamics(self) -> dict:
         cfg, o = self.config, self.config.dynamics_options
@@ -843,6 +967,18 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
             raise ht.error(f"method 'closed_form' needs n = 1, got n = {ho['n']}", "method")
         if ho["method"] == "closed_form" and ho["smoothing"] != 0:
             raise ht.error("method 'closed_form' needs smoothing = 0 (use method = 'rk4')", "method")
+    if h_kind != "none":
+        degree = ht.integer("polynomial", 0, minimum=0, maximum=MAX_POLYNOMIAL)
+        if degree == 1:
+            raise ht.error("the output polynomial's degree must be 0 (none) or 2 and above: degree 1 would duplicate "
+                           "the operator's gain", "polynomial")
+        for key in ("coefficients", "polynomial_scale"):
+            if degree == 0 and key in ht.data:
+                raise ht.error("needs an output polynomial (polynomial = 2 or more)", key)
+        if degree:
+            ho["polynomial"] = degree
+            ho["coefficients"] = ht.vector("coefficients", degree - 1)
+            ho["polynomial_scale"] = ht.number("polynomial_scale", None, positive=True)
 
     # creep
     c_raw = raw.get("creep", {"kind": "none"})
@@ -856,6 +992,23 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     elif c_kind == "logarithmic":
         co.update(gamma=ct.number("gamma", None), t0=ct.number("t0", None, positive=True),
                   gain=ct.number("gain", None))
+    elif c_kind == "lag":
+        n, (alpha, tau) = ct.sized_vectors("lags", 1, MAX_CREEP_ORDER, {"fractions": dict(positive=True),
+                                                     "time_constants": dict(positive=True)})
+        if alpha is not None and sum(alpha) >= 1:
+            raise ct.error(f"the fractions must add up to less than 1 (the rest responds at once), got {sum(alpha)}",
+                           "fractions")
+        co.update(lags=n, fractions=alpha, time_constants=tau)
+    if c_kind != "none":
+        structure = ct.string("structure", ("series", "parallel"))
+        if structure is not None:
+            co["structure"] = structure
+        if c_kind == "lag" and structure == "parallel":
+            raise ct.error("a 'lag' creep is DC-normalised (its gain is 1): it belongs in series after the hysteresis; "
+                           "use 'kelvin_voigt' for creep in parallel", "structure")
+        if "observer" in raw and (c_kind == "lag" or structure == "series"):
+            raise ct.error("the observer adds its creep in parallel to the hysteresis (paper 001's eq. 4); use "
+                           "'kelvin_voigt' or 'logarithmic' without `structure`", "structure" if structure else "kind")
 
     # observer or actuator
     observer = None
@@ -900,6 +1053,24 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         cht = _Table(source, "charge", raw["charge"], _CHARGE_KEYS)
         charge = {"capacitance": cht.number("capacitance", None, nonnegative=True),
                   "coupling": cht.number("coupling", None)}
+    state: dict[str, Any] = {}
+    if "state" in raw:
+        st = _Table(source, "state", raw["state"], _STATE_KEYS)
+        if "kind" in st.data:
+            raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(_STATE_KEYS)}", "kind")
+        if observer is not None:
+            raise PiezojaxValueError(f"{source}: [state] (offset, prehistory) is not available for the observer yet")
+        for key in _STATE_KEYS:
+            if key not in st.data:
+                continue
+            value = st.data[key]
+            if not (isinstance(value, bool) or _finite_number(value)):
+                raise st.error(f"must be true (fitted from the data), false (none) or a number (its start value), "
+                               f"got {value!r}", key)
+            state[key] = value if isinstance(value, bool) else float(value)
+        if state.get("prehistory", False) is not False and h_kind == "none":
+            raise st.error("a prehistory sets the hysteresis' remanent state; the model has no hysteresis",
+                           "prehistory")
     if observer is None and c_kind == "none" and h_kind == "none" and order == 0:
         raise PiezojaxValueError(f"{source}: every block is 'none': the model has no parameters")
 
@@ -985,7 +1156,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     cfg = ModelConfig(
         text=text, source=source, hysteresis=h_kind, hysteresis_options=ho, creep=c_kind, creep_options=co,
         dynamics_order=order, dynamics_options=do, charge=charge, observer=observer, free=free, weights=weights,
-        smoothing=smoothing, max_steps=max_steps, targets=targets, method=method, data=data,
+        smoothing=smoothing, max_steps=max_steps, targets=targets, method=method, data=data, state=state,
     )
     if ho.get("smoothing", 0.0) != 0 and h_kind == "bouc_wen" and cfg._bouc_wen_method() != "rk4":
         raise ht.error("smoothing needs method = 'rk4'", "smoothing")

@@ -28,7 +28,8 @@ def set_smoothing(model, smoothing: float):
     """
 
     def is_h(x):
-        return isinstance(x, pj.AbstractHysteresis) and hasattr(x, "smoothing")
+        # a field, not a wrapper's property (`pj.OutputPolynomial`): the map descends into the wrapped operator
+        return isinstance(x, pj.AbstractHysteresis) and "smoothing" in {f.name for f in dataclasses.fields(x)}
 
     def replace(x):
         if is_h(x) and eqx.is_array(x.smoothing):

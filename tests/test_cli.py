@@ -373,6 +373,20 @@ def test_ctrl_c_leaves_no_folder_or_a_complete_one(work):
     ('[fit]\nmax_steps = 10\n', "no model blocks"),
     ('[dynamics]\norder = 2\n[fit]\nmethod = "bfgs"\n', "[fit] method: unknown value 'bfgs'"),
     ('hysteresis = 3\n', "hysteresis must be a table"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\npolynomial = 1\n', "[hysteresis] polynomial: the output polynomial's"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\npolynomial = 7\n', "[hysteresis] polynomial: must be <= 6"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\npolynomial = 3\ncoefficients = [0.1]\n',
+     "[hysteresis] coefficients: must have 2 entries"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\ncoefficients = [0.1]\n', "[hysteresis] coefficients: needs an output"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\n[creep]\nkind = "lag"\nlags = 2\nfractions = [0.6, 0.5]\n',
+     "[creep] fractions: the fractions must add up to less than 1"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\n[creep]\nkind = "lag"\nstructure = "parallel"\n',
+     "[creep] structure: a 'lag' creep is DC-normalised"),
+    ('[creep]\nkind = "kelvin_voigt"\nstructure = "diagonal"\n', "[creep] structure: unknown value 'diagonal'"),
+    ('[dynamics]\norder = 2\n[state]\nprehistory = true\n', "[state] prehistory: a prehistory sets the"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\n[state]\noffset = "yes"\n', "[state] offset: must be true"),
+    ('[hysteresis]\nkind = "prandtl_ishlinskii"\n[state]\nremanence = 1.0\n',
+     "[state]: unknown key 'remanence'; allowed keys: offset, prehistory"),
 ])
 def test_config_errors_name_table_key_and_allowed_values(text, expected):
     with pytest.raises(pj.PiezojaxValueError) as e:
@@ -385,7 +399,7 @@ def test_config_defaults_and_free_sets():
     cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\n[dynamics]\norder = 3\n[charge]\n', "m.toml")
     assert cfg.hysteresis_options["plays"] == 10 and cfg.outputs == ("displacement", "charge", "current")
     assert cfg.default_free() == ("hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0", "dynamics.omega",
-                                  "dynamics.zeta", "dynamics.poles", "capacitance", "coupling")
+                                  "dynamics.zeta", "dynamics.poles", "capacitance", "coupling", "offset")
     assert "capacitance" not in cfg.fit_free(("displacement",)) and "coupling" in cfg.fit_free(("charge",))
     model = pj.unwrap(cfg.build(None))  # placeholders of the configured shapes
     assert model.hysteresis.weights.shape == (10,) and model.dynamics.order == 3 and float(model.dynamics.gain) == 1
@@ -393,4 +407,65 @@ def test_config_defaults_and_free_sets():
     assert bw._bouc_wen_method() == "rk4" and "hysteresis.n" in bw.default_free()
     assert "dynamics.gain" in parse_config('[creep]\nkind = "logarithmic"\n', "m.toml").default_free()
     assert cfg.method == "levenberg_marquardt"
+
+
+def test_config_state_polynomial_and_lag_creep_build_the_composed_actuator():
+    text = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 4\npolynomial = 3\n[creep]\nkind = "lag"\nlags = 2\n'
+            '[dynamics]\norder = 2\n[state]\nprehistory = -20.0\noffset = 1e-7\n')
+    cfg = parse_config(text, "m.toml")
+    assert cfg.creep_structure == "series" and cfg.polynomial == 3
+    assert cfg.default_free() == (
+        "hysteresis.hysteresis.weights", "hysteresis.hysteresis.thresholds", "hysteresis.hysteresis.w0",
+        "hysteresis.coefficients", "creep.fractions", "creep.time_constants", "dynamics.omega", "dynamics.zeta",
+        "offset", "prehistory")
+    model = pj.unwrap(cfg.build(None))
+    assert isinstance(model.hysteresis, pj.OutputPolynomial) and isinstance(model.creep, pj.LagCreep)
+    assert model.structure == "series" and float(model.prehistory) == -20.0 and float(model.offset) == 1e-7
+    assert model.hysteresis.coefficients.shape == (2,) and model.creep.fractions.shape == (2,)
+    # the offset is in the default model (fitted), the prehistory only when asked for; `false` removes both
+    plain = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\n', "m.toml")
+    assert "offset" in plain.default_free() and pj.unwrap(plain.build(None)).prehistory is None
+    off = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\n[state]\noffset = false\n', "m.toml")
+    assert "offset" not in off.default_free()
+    # forward simulation needs the prehistory's value when it is `true`
+    with pytest.raises(pj.PiezojaxValueError, match=r"\[state\] prehistory"):
+        parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nweights = [1.0]\nthresholds = [1.0]\nplays = 1\n'
+                     'w0 = 1.0\n[state]\nprehistory = true\n', "m.toml").build(None, require_values=True)
+
+
+def test_config_starts_offset_and_prehistory_from_the_data():
+    # a remanent actuator seen by a sensor with an offset: both starts land near the truth
+    pi = pj.PrandtlIshlinskii(jnp.asarray([0.3, 0.2]), jnp.asarray([10.0, 30.0]), w0=jnp.asarray(1.0))
+    truth = pj.Actuator(pi, offset=5.0, prehistory=-60.0)
+    t = np.arange(600) * DT
+    v = np.where(t < 0.1, 0.0, 50 * np.sin(2 * np.pi * 4 * t))
+    y = np.asarray(truth(jnp.asarray(v), DT).displacement)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(v_in=v, t=t, displacement=y, name="r")])
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\nweights = [0.3, 0.2]\n'
+                       'thresholds = [10.0, 30.0]\nw0 = 1.0\n[state]\nprehistory = true\n', "m.toml")
+    start = pj.unwrap(cfg.build(ds))
+    # the grid point nearest -60 (from -max|v| to max|v| in steps of max|v| / 4)
+    assert float(start.prehistory) == pytest.approx(-np.max(np.abs(v)))
+    assert float(start.offset) == pytest.approx(5.0, abs=0.5)
     assert parse_config('[dynamics]\norder = 2\n[fit]\nmethod = "trust_region"\n', "m.toml").method == "trust_region"
+
+
+@pytest.mark.slow
+def test_shipped_config_calibrates_the_measured_actuator(tmp_path):
+    """The README's example: the shipped CONFIG on the shipped 150 V record, fitted on t < 7 s through `piezojax fit`
+    and scored on 7-10 s with the first 7 s as history through `piezojax predict` (measured 0.061 um)."""
+    data = ROOT / "experiments" / "data" / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv"
+    config = ROOT / "experiments" / "configs" / "piezo_150v_pi.toml"
+    fit_dir, pred_dir = tmp_path / "fit", tmp_path / "held_out"
+    assert main(["fit", str(config), str(data), "--window", ":7", "--out", str(fit_dir), "--quiet",
+                 "--no-figures"]) in (0, 1)
+    assert main(["predict", str(fit_dir), str(data), "--score-from", "7", "--out", str(pred_dir)]) == 0
+    scored = json.loads((pred_dir / "metrics.json").read_text())["metrics"]["hysteresis_v_150_1hz"]["displacement"]
+    pred = np.genfromtxt(pred_dir / "hysteresis_v_150_1hz.csv", delimiter=",", names=True, skip_header=1)
+    raw = np.genfromtxt(data, delimiter=",")
+    held = raw[:, 1] >= 7.0
+    np.testing.assert_allclose(pred["t"], raw[:, 1], atol=1e-6)  # the file rounds its stamps
+    # scored here from the raw file (µm), independently of the command's own metric
+    rmse_um = 1e6 * np.sqrt(np.mean((pred["displacement"][held] - 1e-6 * raw[held, 2]) ** 2))
+    assert scored["samples"] == held.sum() and scored["rmse"] == pytest.approx(1e-6 * rmse_um, rel=1e-6)
+    assert rmse_um <= 0.065, rmse_um

@@ -547,7 +547,7 @@ def test_fit_too_large_for_the_memory_is_refused_before_any_work(bench, tmp_path
     rc = main(["fit", str(bench / "pi.toml"), str(bench / "ok.csv"), "--out", str(out)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
-    assert "GiB" in err[0] and "300 samples" in err[0] and "5 free parameters" in err[0], err
+    assert "GiB" in err[0] and "300 samples" in err[0] and "6 free parameters" in err[0], err
     assert "initial values" not in " ".join(err) and not out.exists()
 
 
