@@ -470,7 +470,7 @@ class ModelConfig:
         recs = [e for e in dataset if e.has("displacement")]
         if not recs:
             return model
-        sim = eqx.filter_jit(lambda m, v, dt: m.simulate(v, dt).displacement)
+        sim = _displacement
 
         def with_offset(m):
             if offset is not True:
@@ -601,9 +601,15 @@ def _chord(v: np.ndarray, y: np.ndarray) -> float:
     return float(np.dot(v, y)) / den if den > 0 else 1.0
 
 
+@eqx.filter_jit
+def _displacement(model, v, dt):
+    """An actuator's displacement, compiled once per model structure and record length (not once per call)."""
+    return model.simulate(v, dt).displacement
+
+
 def _start_error(model, dataset) -> float:
     """Sum over experiments of the squared displacement error of an actuator, relative to the displacement range."""
-    sim = eqx.filter_jit(lambda m, v, dt: m.simulate(v, dt).displacement)
+    sim = _displacement
     total = 0.0
     for e in dataset:
         if e.has("displacement"):

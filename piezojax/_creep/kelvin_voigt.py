@@ -90,6 +90,16 @@ def _lag_scan_jvp(primals, tangents):
     return y, dy
 
 
+def paired_vectors(a: ArrayLike, name_a: str, b: ArrayLike, name_b: str) -> tuple[Array, Array]:
+    """Two 1-D real vectors of the same shape (values checked by the caller), or one error naming both."""
+    x, y = check_vector(a, name_a, finite=False), check_vector(b, name_b, finite=False)
+    if x.shape != y.shape:
+        raise PiezojaxValueError(
+            f"`{name_a}` and `{name_b}` must have the same shape, got {tuple(x.shape)} and {tuple(y.shape)}"
+        )
+    return x, y
+
+
 class KelvinVoigtCreep(AbstractCreep):
     r"""Kelvin–Voigt creep chain: $y = \left(\frac{1}{k_0} + \sum_i \frac{1}{k_i}\,\frac{1}{1 + \tau_i s}\right) u$.
 
@@ -124,13 +134,7 @@ class KelvinVoigtCreep(AbstractCreep):
     k0: Array | None
 
     def __init__(self, stiffnesses: ArrayLike, time_constants: ArrayLike, k0: ArrayLike | None = 1.0):
-        k = check_vector(stiffnesses, "stiffnesses", finite=False)
-        tau = check_vector(time_constants, "time_constants", finite=False)
-        if k.shape != tau.shape:
-            raise PiezojaxValueError(
-                f"`stiffnesses` and `time_constants` must have the same shape, got {tuple(k.shape)} "
-                f"and {tuple(tau.shape)}"
-            )
+        k, tau = paired_vectors(stiffnesses, "stiffnesses", time_constants, "time_constants")
         self.stiffnesses = check_positive(k, "stiffnesses")
         self.time_constants = check_positive(tau, "time_constants")
         if isinstance(k0, int | float) and not isinstance(k0, bool):

@@ -4,9 +4,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, check_positive, check_value, check_vector
+from .._checks import check_positive, check_value
 from .base import AbstractCreep
-from .kelvin_voigt import KelvinVoigtCreep
+from .kelvin_voigt import KelvinVoigtCreep, paired_vectors
 
 
 def _check_fractions(alpha: Array) -> Array:
@@ -47,13 +47,7 @@ class LagCreep(AbstractCreep):
     time_constants: Array = eqx.field(converter=jnp.asarray)
 
     def __init__(self, fractions: ArrayLike, time_constants: ArrayLike):
-        alpha = check_vector(fractions, "fractions", finite=False)
-        tau = check_vector(time_constants, "time_constants", finite=False)
-        if alpha.shape != tau.shape:
-            raise PiezojaxValueError(
-                f"`fractions` and `time_constants` must have the same shape, got {tuple(alpha.shape)} "
-                f"and {tuple(tau.shape)}"
-            )
+        alpha, tau = paired_vectors(fractions, "fractions", time_constants, "time_constants")
         self.fractions = _check_fractions(alpha)
         self.time_constants = check_positive(tau, "time_constants")
 
