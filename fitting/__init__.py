@@ -1,6 +1,8 @@
 """fitting: end-to-end calibration of piezojax models by nonlinear least squares.
 
 - Data: `Experiment`, `Dataset`, `load_experiment`, `save_experiment` (CSV, NPZ, HDF5, MATLAB .mat).
+- Model configurations: `load_config`, `parse_config`, `ModelConfig`; the registry of block kinds a CONFIG can
+  name (`BlockKind`, `register_kind`, `ConfigTable`, `StartData`) and of whole-model kinds (`ModelKind`).
 - Problem: `Problem` (model, data, free parameters, channel weights, weighted residuals), `Predictor` and the
   built-in predictors.
 - Solver: `fit` / `solve` (optimistix's Levenberg–Marquardt, or `method="trust_region"`: scipy's TRF algorithm, in
@@ -22,6 +24,8 @@ _EXPORTS = {
         "save_experiment",
     ),
     "._initialise": ("cold_start_actuator", "cold_start_free"),
+    "._kinds": ("BlockKind", "ConfigTable", "StartData", "register_kind", "registered_kinds", "unregister_kind"),
+    "._model_kinds": ("ModelKind", "register_model_kind"),
     "._io": (
         "atomic_directory", "atomic_file", "atomic_write_bytes", "atomic_write_text", "check_writable", "save_json",
         "to_jsonable",
@@ -73,6 +77,15 @@ if TYPE_CHECKING:  # the same names for static analysis
         save_json as save_json,
         to_jsonable as to_jsonable,
     )
+    from ._kinds import (
+        BlockKind as BlockKind,
+        ConfigTable as ConfigTable,
+        StartData as StartData,
+        register_kind as register_kind,
+        registered_kinds as registered_kinds,
+        unregister_kind as unregister_kind,
+    )
+    from ._model_kinds import ModelKind as ModelKind, register_model_kind as register_model_kind
     from ._predict import (
         ExperimentArrays as ExperimentArrays,
         Predictor as Predictor,

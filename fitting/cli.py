@@ -31,10 +31,15 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
   [hysteresis]  kind = "prandtl_ishlinskii" (plays = 10, weights, thresholds, w0)
                      | "bouc_wen" (A, beta, gamma, n, d, method = "closed_form"|"rk4", substeps)
                      | "maxwell_slip" (elements = 8, stiffness, breakaway)
+                     | "preisach" (levels = 8, range = [v_min, v_max], mu)
                      | "none";            smoothing = 0.0 (0 = exact operator)
+                polynomial = 2..6 (coefficients, polynomial_scale): static output polynomial (loop asymmetry)
   [creep]       kind = "kelvin_voigt" (order = 1, stiffnesses, time_constants)
-                     | "logarithmic" (gamma, t0, gain) | "none"
-  [dynamics]    order = 0 | 1 | 2 | 3 | 4 (gain = 1, omega [rad/s], zeta, poles [rad/s] < 0)
+                     | "logarithmic" (gamma, t0, gain) | "lag" (lags = 1, fractions, time_constants) | "none"
+                structure = "parallel" | "series" (after the hysteresis; "lag" only in series)
+  [dynamics]    order = 0 .. 8 (gain = 1, omega [rad/s], zeta, poles [rad/s] < 0)
+                zero_pairs (zero_omega [rad/s], zero_zeta), real_zeros (zeros [rad/s])
+  [state]       offset = true | false | value [m];  prehistory = false | true | value [V]
   [charge]      capacitance [F], coupling [C/m]   (an actuator that also predicts charge and current)
   [observer]    kind = "current_integration": paper 001 self-sensing, displacement and force from v_in and
                 v_out; integrator_capacitance, reference_capacitance, leakage_resistance, force_sensitivity,
@@ -50,7 +55,8 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
                 columns = {u = "v_in", y = "displacement"}   (rename; {2 = "t", ...} by position without a header)
                 group = "multisine" (HDF5);  sample_rate = 750.0 [Hz] (files without t);  ignore_extra = false
 
-Sizes: plays, elements <= 100; creep order <= 10; Bouc-Wen substeps <= 64; max_steps <= 100000.
+Sizes: plays, elements <= 100; Preisach levels <= 30; creep order, lags <= 10; Bouc-Wen substeps <= 64;
+max_steps <= 100000.
 Parameter values not given in CONFIG start from the data (`fit`), see the README ("Command line").
 Data files: .csv (header naming t, v_in and any of v_out, displacement, force, charge, current), .npz, .h5/.hdf5,
 .mat with the same names; SI units unless declared; uniform t in seconds.
@@ -484,8 +490,7 @@ def _memory_estimate(config, dataset, num_free: int) -> int:
     (the solver forms it one record at a time on CPU), times the Bouc–Wen RK4 substeps."""
     n = max(e.n for e in dataset)
     channels = max(1, len(config.outputs))
-    sub = config.hysteresis_options.get("substeps", 8) if config.hysteresis == "bouc_wen" else 1
-    return 8 * n * channels * (num_free + 1) * 8 * max(1, sub // 4) + 200 * 2**20
+    return 8 * n * channels * (num_free + 1) * 8 * config.cost() + 200 * 2**20
 
 
 def _num_free(model, free) -> int:

@@ -225,10 +225,10 @@ def _bad_cases(d):
     _write_csv(d / "nonuniform.csv", ["t", "v_in", "displacement"], [t2, v, x])
     _write_csv(d / "nan.csv", ["t", "v_in", "displacement"], [t, v, np.where(np.arange(500) == 17, np.nan, x)])
     _write_csv(d / "ok.csv", ["t", "v_in", "displacement"], [t, v, x])
-    (d / "badkind.toml").write_text('[hysteresis]\nkind = "preisach"\nplays = 3\n')
+    (d / "badkind.toml").write_text('[hysteresis]\nkind = "stop"\nplays = 3\n')
     (d / "badtable.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\n[motor]\norder = 2\n')
     (d / "badkey.toml").write_text('[creep]\nkind = "kelvin_voigt"\norder = 1\ntau = [1.0]\n')
-    (d / "badorder.toml").write_text('[dynamics]\norder = 7\n')
+    (d / "badorder.toml").write_text('[dynamics]\norder = 9\n')
     (d / "afile").write_text("not a folder\n")
     cfg = str(d / "pi_creep.toml")
     ok = str(d / "ok.csv")
@@ -236,7 +236,7 @@ def _bad_cases(d):
         "missing column": (["fit", cfg, str(d / "nocol.csv")], "required column(s) ['v_in'] missing"),
         "non-uniform t": (["fit", cfg, str(d / "nonuniform.csv")], "not uniformly sampled"),
         "NaN": (["fit", cfg, str(d / "nan.csv")], "non-finite value (nan) at row 17"),
-        "unknown block kind": (["fit", str(d / "badkind.toml"), ok], "unknown kind 'preisach'; allowed kinds"),
+        "unknown block kind": (["fit", str(d / "badkind.toml"), ok], "unknown kind 'stop'; allowed kinds"),
         "unknown table": (["fit", str(d / "badtable.toml"), ok], "unknown table or key [motor]"),
         "unknown key": (["fit", str(d / "badkey.toml"), ok], "unknown key 'tau'"),
         "bad order": (["fit", str(d / "badorder.toml"), ok], "order: must be one of 0, 1, 2, 3, 4"),
@@ -296,8 +296,8 @@ def test_console_script_help_and_error(work, capsys):
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
-        f"piezojax: error: {d / 'badkind.toml'}: [hysteresis] kind: unknown kind 'preisach'; allowed kinds: "
-        "prandtl_ishlinskii, bouc_wen, maxwell_slip, none"
+        f"piezojax: error: {d / 'badkind.toml'}: [hysteresis] kind: unknown kind 'stop'; allowed kinds: "
+        "prandtl_ishlinskii, bouc_wen, maxwell_slip, preisach, none"
     ]
     assert not (d / "o").exists()
     # the same parser in-process: per-command help with examples, one-line usage errors
@@ -404,7 +404,7 @@ def test_config_defaults_and_free_sets():
     model = pj.unwrap(cfg.build(None))  # placeholders of the configured shapes
     assert model.hysteresis.weights.shape == (10,) and model.dynamics.order == 3 and float(model.dynamics.gain) == 1
     bw = parse_config('[hysteresis]\nkind = "bouc_wen"\n[fit]\nsmoothing = [0.1, 0.0]\n', "m.toml")
-    assert bw._bouc_wen_method() == "rk4" and "hysteresis.n" in bw.default_free()
+    assert bw.hysteresis_options["method"] == "rk4" and "hysteresis.n" in bw.default_free()
     assert "dynamics.gain" in parse_config('[creep]\nkind = "logarithmic"\n', "m.toml").default_free()
     assert cfg.method == "levenberg_marquardt"
 

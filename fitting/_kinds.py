@@ -1,0 +1,853 @@
+"""The registry of model-block kinds a CONFIG can name: one class per kind, declaring everything about it.
+
+A kind is a `BlockKind` subclass registered with `register_kind`: the table it belongs to (`hysteresis`, `creep` or
+`dynamics`), its name (`kind = "..."` in that table), its keys and how they are validated (`parse`), its parameters
+and which of them a forward simulation needs (`parameters`, `required`), placeholder values (`placeholder`, enough
+to rebuild the structure of a fitted model), data-driven initial values (`start`), the block (`build`), the
+constraints its parameters are fitted under (`constraints`) and the parameters fitted by default (`default_free`).
+The generic configuration code (`fitting._config`) names no kind: it looks each one up here, so a new kind is one
+class in one file:
+
+```python
+class WeightedPlay(fitting.BlockKind):          # a hysteresis kind: y = w P_r[v], for a user's own block class
+    table, name, keys = "hysteresis", "weighted_play", ("weight", "threshold")
+    def parse(self, t, raw):
+        return {"weight": t.number("weight"), "threshold": t.number("threshold", positive=True)}
+    def parameters(self, o): return ("weight", "threshold")
+    def placeholder(self, o): return {"weight": 1.0, "threshold": 1.0}
+    def start(self, o, data): return {"weight": data.static_gain(), "threshold": 0.1 * data.max_input()}
+    def build(self, o, v, config): return MyWeightedPlay(v["weight"], v["threshold"])
+    def constraints(self, o): return {"threshold": pj.Positive}
+
+fitting.register_kind(WeightedPlay())          # now `[hysteresis] kind = "weighted_play"` works
+```
+
+The whole model (which blocks it has, its state and outputs) is a `ModelKind`: `pj.Actuator` when the CONFIG has no
+`[observer]` table, else the observer kind it names (`register_model_kind`).
+"""
+
+import math
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+# Upper bounds on the sizes a CONFIG may ask for, checked before any work: beyond them the initialisation (dense
+# NNLS over plays x samples) or the fit's memory grows past what the method is meant for.
+MAX_PLAYS = 100
+MAX_ELEMENTS = 100
+MAX_LEVELS_PREISACH = 30
+MAX_CREEP_ORDER = 10
+MAX_SUBSTEPS = 64
+MAX_POLYNOMIAL = 6
+DYNAMICS_ORDERS = (0, 1, 2, 3, 4, 5, 6, 7, 8)
+
+TINY = np.finfo(float).tiny
+
+
+def finite_number(x) -> bool:
+    """A TOML number (not a bool) that is finite as a float (an integer of 400 digits is not)."""
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
+
+
+def chord(v: np.ndarray, y: np.ndarray) -> float:
+    """Least-squares slope of y against v through the origin (1 when v is zero)."""
+    den = float(np.dot(v, v))
+    return float(np.dot(v, y)) / den if den > 0 else 1.0
+
+
+class Negative(pj.AbstractReparam):
+    r"""Elementwise negative parameter (real poles of the dynamics): $x = -\mathrm{softplus}(\mathrm{raw}) < 0$."""
+
+    raw: jax.Array = eqx.field(converter=jnp.asarray)
+
+    @classmethod
+    def from_value(cls, value) -> "Negative":
+        value = jnp.asarray(value)
+        return cls(pj.inv_softplus(-value))
+
+    def unwrap(self) -> jax.Array:
+        return -pj.softplus(self.raw)
+
+
+# ------------------------------------------------------------------------------------------------ one TOML table
+
+
+class ConfigTable:
+    """One TOML table of a CONFIG, with the file and table names for its error messages.
+
+    **Arguments:**
+
+    - `source`: the file name (the start of every error message).
+    - `name`: the table's name (`hysteresis`, ...).
+    - `data`: the table's contents.
+    - `allowed`: the keys allowed besides `kind`; any other key is an error listing them.
+    - `kind`: the kind named in the table, for the error message.
+
+    The readers (`number`, `integer`, `string`, `vector`, `sized_vectors`) return `default` (`None`) when the key is
+    absent and raise one `PiezojaxValueError` naming the file, table and key otherwise.
+    """
+
+    def __init__(self, source: str, name: str, data: Any, allowed: tuple[str, ...], kind: str | None = None):
+        self.source, self.name = source, name
+        if not isinstance(data, Mapping):
+            raise self.error(f"must be a table ([{name}]), got {type(data).__name__}")
+        self.data = dict(data)
+        unknown = [k for k in self.data if k not in allowed and k != "kind"]
+        if unknown:
+            what = f" for kind {kind!r}" if kind is not None else ""
+            raise self.error(
+                f"unknown key {unknown[0]!r}; allowed keys{what}: {', '.join(allowed) if allowed else '(none)'}"
+            )
+
+    def error(self, msg: str, key: str | None = None) -> PiezojaxValueError:
+        """A `PiezojaxValueError` `"<file>: [<table>] <key>: <msg>"` (to raise)."""
+        where = f"[{self.name}] {key}" if key else f"[{self.name}]"
+        return PiezojaxValueError(f"{self.source}: {where}: {msg}")
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def number(self, key: str, default=None, *, positive=False, nonnegative=False, nonzero=False):
+        if key not in self.data:
+            return default
+        x = self.data[key]
+        if not finite_number(x):
+            raise self.error(f"must be a finite number, got {x!r}", key)
+        if positive and not x > 0:
+            raise self.error(f"must be > 0, got {x!r}", key)
+        if nonnegative and not x >= 0:
+            raise self.error(f"must be >= 0, got {x!r}", key)
+        if nonzero and x == 0:
+            raise self.error("must be nonzero", key)
+        return float(x)
+
+    def integer(self, key: str, default=None, *, minimum=None, maximum=None, allowed=None):
+        if key not in self.data:
+            return default
+        x = self.data[key]
+        if isinstance(x, bool) or not isinstance(x, int):
+            raise self.error(f"must be an integer, got {x!r}", key)
+        if allowed is not None and x not in allowed:
+            raise self.error(f"must be one of {', '.join(map(str, allowed))}; got {x}", key)
+        if minimum is not None and x < minimum:
+            raise self.error(f"must be >= {minimum}, got {x}", key)
+        if maximum is not None and x > maximum:
+            raise self.error(f"must be <= {maximum} (the documented upper bound), got {x}", key)
+        return x
+
+    def string(self, key: str, allowed: tuple[str, ...], default=None):
+        if key not in self.data:
+            return default
+        x = self.data[key]
+        if not isinstance(x, str) or x not in allowed:
+            raise self.error(f"unknown value {x!r}; allowed values: {', '.join(allowed)}", key)
+        return x
+
+    def vector(self, key: str, length: int | None, *, positive=False, nonnegative=False, negative=False,
+               ascending=False):
+        if key not in self.data:
+            return None
+        x = self.data[key]
+        if not isinstance(x, list) or not all(finite_number(v) for v in x):
+            raise self.error(f"must be a list of finite numbers, got {x!r}", key)
+        if length is not None and len(x) != length:
+            raise self.error(f"must have {length} entries (from the block's size), got {len(x)}", key)
+        if not x:
+            raise self.error("must not be empty", key)
+        a = np.asarray(x, dtype=np.float64)
+        if positive and not np.all(a > 0):
+            raise self.error(f"entries must be > 0, got {x}", key)
+        if nonnegative and not np.all(a >= 0):
+            raise self.error(f"entries must be >= 0, got {x}", key)
+        if negative and not np.all(a < 0):
+            raise self.error(f"entries must be < 0, got {x}", key)
+        if ascending and not np.all(np.diff(a) > 0):
+            raise self.error(f"entries must be strictly ascending, got {x}", key)
+        return a
+
+    def sized_vectors(
+        self, size_key: str, default_size: int, maximum: int, specs: dict[str, dict], *, minimum: int = 1
+    ) -> tuple[int, list]:
+        """A block of `size_key` elements (`minimum` to `maximum`) and its per-element vectors `specs` (name →
+        `vector` options): the size is given, or taken from the vectors given (which must agree), else
+        `default_size`."""
+        n = self.integer(size_key, None, minimum=minimum, maximum=maximum)
+        vectors = [self.vector(name, n, **opts) if n != 0 else self._absent(name, size_key)
+                   for name, opts in specs.items()]
+        sizes = {len(x) for x in vectors if x is not None}
+        if n is None:
+            if len(sizes) > 1:
+                names = list(specs)
+                raise self.error(f"`{names[0]}` and `{names[1]}` must have the same length", names[0])
+            n = sizes.pop() if sizes else default_size
+            if n > maximum:
+                name = next(k for k, x in zip(specs, vectors) if x is not None)
+                raise self.error(f"has {n} entries; at most {maximum} (the documented upper bound of "
+                                 f"`{size_key}`)", name)
+        return n, vectors
+
+    def _absent(self, name: str, size_key: str):
+        if name in self.data:
+            raise self.error(f"not used with {size_key} = 0", name)
+        return None
+
+
+# ------------------------------------------------------------------------------------------------ starts
+
+
+class StartData:
+    """What a kind's `start` may use: the data, and the quantities every start needs, computed once.
+
+    **Fields:** `config` (the `ModelConfig`), `dataset` (the `fitting.Dataset`).
+    """
+
+    def __init__(self, config, dataset, use_cold_start: bool = True):
+        self.config, self.dataset = config, dataset
+        self._records = None
+        self._cold = None if use_cold_start else False
+
+    def records(self) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """`(v_in, y, dt)` per usable experiment, `y` the output of hysteresis + creep in the model's units (the
+        displacement of an actuator, quasi-static; the model kind's `records`). Raises when there are none, or when
+        every voltage is zero."""
+        if self._records is None:
+            recs = self.config.model_kind.records(self.config, self.dataset)
+            if not max(float(np.max(np.abs(v))) for v, _, _ in recs) > 0:
+                raise PiezojaxValueError("every 'v_in' column is identically zero: no initial values can be "
+                                         "identified")
+            self._records = recs
+        return self._records
+
+    def inputs(self) -> np.ndarray:
+        """Every record's voltage, concatenated."""
+        return np.concatenate([v for v, _, _ in self.records()])
+
+    def outputs(self) -> np.ndarray:
+        """Every record's `y` (see `records`), concatenated."""
+        return np.concatenate([y for _, y, _ in self.records()])
+
+    def max_input(self) -> float:
+        """The largest |v_in| of the records."""
+        return float(np.max(np.abs(self.inputs())))
+
+    def static_gain(self) -> float:
+        """Least-squares slope of `y` against the voltage (through the origin)."""
+        return chord(self.inputs(), self.outputs())
+
+    def dt(self) -> float:
+        """The shortest sampling interval of the dataset."""
+        return min(e.dt for e in self.dataset)
+
+    def span(self) -> float:
+        """The duration of the longest record."""
+        return max(e.n * e.dt for e in self.dataset)
+
+    @property
+    def unit_drive(self) -> bool:
+        """True when the creep acts on the voltage itself, ahead of the dynamics' gain (an actuator without
+        hysteresis, where the dynamics carry the scale from volts to metres)."""
+        return self.config.hysteresis_kind.empty and self.config.model_kind.scale_in_dynamics
+
+    def cold_start(self):
+        """`fitting.cold_start_actuator`'s joint start of every block, when each configured block is in its family
+        (each kind's `cold_start_args`), else `None`. Computed once."""
+        if self._cold is None:
+            self._cold = False
+            cfg = self.config
+            if self.dataset is not None and cfg.model_kind.cold_start:
+                args = {}
+                for table in ("hysteresis", "creep", "dynamics"):
+                    a = cfg.kind(table).cold_start_args(cfg.options(table), cfg)
+                    if a is None:
+                        return None
+                    args.update(a)
+                ds = [e for e in self.dataset if e.has("displacement")]
+                if ds and args.get("n_plays"):
+                    from ._initialise import cold_start_actuator
+
+                    self._cold = pj.unwrap(cold_start_actuator(
+                        ds, args["n_plays"], args.get("creep_order", 0), args.get("dynamics_order", 0),
+                        constrained=False))
+        return self._cold if self._cold is not False else None
+
+
+# ------------------------------------------------------------------------------------------------ block kinds
+
+
+class BlockKind:
+    """One kind of model block a CONFIG table can name (`[hysteresis] kind = "prandtl_ishlinskii"`).
+
+    Subclasses set the class attributes and override the methods they need; `o` is the kind's options as `parse`
+    returned them, `v` the values of its parameters (explicit from the file, else from `start` or `placeholder`).
+
+    **Class attributes:**
+
+    - `table`: `"hysteresis"`, `"creep"` or `"dynamics"`.
+    - `name`: the kind's name in the table.
+    - `keys`: the keys the kind accepts besides `kind` (and the table's common keys: the output polynomial's for
+      hysteresis, `structure` for creep).
+    - `empty`: the kind is "no block" (`"none"`).
+    - `structures`: creep only: the structures it may be used in (`"series"`, `"parallel"`), the first the default;
+      `structure_note`: the error message for another structure (default: the allowed ones).
+    """
+
+    table: ClassVar[str]
+    name: ClassVar[str]
+    keys: ClassVar[tuple[str, ...]] = ()
+    empty: ClassVar[bool] = False
+    structures: ClassVar[tuple[str, ...]] = ("parallel", "series")
+    structure_note: ClassVar[str] = ""
+
+    def parse(self, t: ConfigTable, raw: Mapping) -> dict:
+        """The validated options of the table `t` (`raw`: the whole CONFIG, for keys that depend on other tables).
+        Parameter values the file does not give are `None` (or absent)."""
+        return {}
+
+    def parameters(self, o: dict) -> tuple[str, ...]:
+        """The names of the block's parameters (keys of `o` when the file gives them)."""
+        return ()
+
+    def required(self, o: dict) -> tuple[str, ...]:
+        """The parameters a forward simulation needs from the file (default: all)."""
+        return self.parameters(o)
+
+    def placeholder(self, o: dict) -> dict:
+        """Values of the right shapes for every parameter, without data."""
+        return {}
+
+    def start(self, o: dict, data: StartData) -> dict:
+        """Data-driven initial values for every parameter (called when the file leaves some out)."""
+        return self.placeholder(o)
+
+    def build(self, o: dict, v: dict, config) -> eqx.Module | None:
+        """The block (`None` for an empty kind)."""
+        return None
+
+    def constraints(self, o: dict) -> dict[str, type]:
+        """Attribute of the block → the `pj.AbstractReparam` it is fitted under (e.g. `{"weights": pj.Positive}`)."""
+        return {}
+
+    def default_free(self, o: dict, config) -> tuple[str, ...]:
+        """Attributes fitted when `[fit] free` is not given (default: every parameter)."""
+        return self.parameters(o)
+
+    def cold_start_args(self, o: dict, config) -> dict | None:
+        """Arguments of `fitting.cold_start_actuator` when this block is in its family (PI hysteresis, Kelvin–Voigt
+        creep in parallel or none, even-order all-pole dynamics), else `None`."""
+        return None
+
+    def from_cold_start(self, o: dict, block) -> dict | None:
+        """The parameter values in the cold start's block (`None`: use `start`'s rules)."""
+        return None
+
+    def cost(self, o: dict) -> int:
+        """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
+        return 1
+
+    def values(self, o: dict, data: StartData | None) -> dict:
+        """Explicit values where the file gives them, the rest from the cold start, `start` or `placeholder`."""
+        names = self.parameters(o)
+        out = {k: o.get(k) for k in names}
+        if any(x is None for x in out.values()):
+            made = None
+            if data is not None:
+                cold = data.cold_start()
+                if cold is not None:
+                    made = self.from_cold_start(o, getattr(cold, self.table))
+                if made is None:
+                    made = self.start(o, data)
+            else:
+                made = self.placeholder(o)
+            out = {k: (made[k] if out[k] is None else out[k]) for k in names}
+        return out
+
+
+_KINDS: dict[tuple[str, str], BlockKind] = {}
+BLOCK_TABLES = ("hysteresis", "creep", "dynamics")
+DEFAULT_KIND = {"hysteresis": "none", "creep": "none", "dynamics": "transfer_function"}
+
+
+def register_kind(kind: BlockKind, *, replace: bool = False) -> BlockKind:
+    """Make a block kind available to CONFIG files (`[<kind.table>] kind = "<kind.name>"`).
+
+    **Arguments:**
+
+    - `kind`: an instance of a `BlockKind` subclass.
+    - `replace`: allow replacing a registered kind of the same table and name (otherwise an error).
+
+    **Returns:** `kind`.
+    """
+    if not isinstance(kind, BlockKind):
+        raise PiezojaxValueError(f"`kind` must be a fitting.BlockKind instance, got {type(kind).__name__}")
+    if kind.table not in BLOCK_TABLES:
+        raise PiezojaxValueError(f"`kind.table` must be one of {', '.join(BLOCK_TABLES)}, got {kind.table!r}")
+    if not isinstance(kind.name, str) or not kind.name:
+        raise PiezojaxValueError(f"`kind.name` must be a non-empty string, got {kind.name!r}")
+    if (kind.table, kind.name) in _KINDS and not replace:
+        raise PiezojaxValueError(f"a {kind.table} kind named {kind.name!r} is already registered "
+                                 "(pass replace=True to replace it)")
+    _KINDS[kind.table, kind.name] = kind
+    return kind
+
+
+def unregister_kind(table: str, name: str) -> None:
+    """Remove a registered block kind (for tests and interactive sessions)."""
+    _KINDS.pop((table, name), None)
+
+
+def registered_kinds(table: str) -> tuple[str, ...]:
+    """The kind names a table accepts, in registration order."""
+    return tuple(n for t, n in _KINDS if t == table)
+
+
+def get_kind(table: str, name: str) -> BlockKind:
+    return _KINDS[table, name]
+
+
+# ---- hysteresis
+
+
+class _NoBlock(BlockKind):
+    empty = True
+
+
+class NoHysteresis(_NoBlock):
+    table, name = "hysteresis", "none"
+
+
+class PrandtlIshlinskiiKind(BlockKind):
+    """`pj.PrandtlIshlinskii`: `plays` (≤ 100), `weights`, `thresholds`, `w0`, `smoothing`. Start:
+    `fitting.cold_start_actuator` in its family, else `pj.pi_cold_start` on the quasi-static output."""
+
+    table, name = "hysteresis", "prandtl_ishlinskii"
+    keys = ("plays", "smoothing", "weights", "thresholds", "w0")
+
+    def parse(self, t, raw):
+        n, (w, r) = t.sized_vectors("plays", 10, MAX_PLAYS, {"weights": dict(positive=True),
+                                                          "thresholds": dict(positive=True, ascending=True)})
+        return {"smoothing": t.number("smoothing", 0.0, nonnegative=True), "plays": n, "weights": w,
+                "thresholds": r, "w0": t.number("w0", None, positive=True)}
+
+    def parameters(self, o):
+        return ("weights", "thresholds", "w0")
+
+    def placeholder(self, o):
+        n = o["plays"]
+        return {"weights": np.full(n, 0.1), "thresholds": np.arange(1.0, n + 1), "w0": 1.0}
+
+    def start(self, o, data):
+        recs = data.records()
+        pi = pj.pi_cold_start([v for v, _, _ in recs], [y for _, y, _ in recs], o["plays"])
+        w = np.asarray(pi.weights)
+        top = max(float(np.max(np.abs(np.r_[w, float(pi.w0)]))), TINY)
+        # dead plays revived at 1e-3 of the largest weight: a zero weight is a flat spot of the Positive map
+        return {"weights": np.maximum(w, 1e-3 * top), "thresholds": np.asarray(pi.thresholds),
+                "w0": max(float(pi.w0), 1e-3 * top)}
+
+    def build(self, o, v, config):
+        return pj.PrandtlIshlinskii(f64(v["weights"]), f64(v["thresholds"]), w0=f64(v["w0"]),
+                                    smoothing=f64(o["smoothing"]))
+
+    def constraints(self, o):
+        return {"weights": pj.Positive, "w0": pj.Positive, "thresholds": pj.OrderedPositive}
+
+    def cold_start_args(self, o, config):
+        return {"n_plays": o["plays"]}
+
+    def from_cold_start(self, o, block):
+        return {"weights": np.asarray(block.weights), "thresholds": np.asarray(block.thresholds),
+                "w0": float(block.w0)}
+
+
+class BoucWenKind(BlockKind):
+    """`pj.BoucWen`: `A`, `beta`, `gamma`, `n`, `d`, `method`, `substeps`, `smoothing`."""
+
+    table, name = "hysteresis", "bouc_wen"
+    keys = ("smoothing", "A", "beta", "gamma", "n", "d", "method", "substeps")
+
+    def parse(self, t, raw):
+        o = {"smoothing": t.number("smoothing", 0.0, nonnegative=True),
+             "A": t.number("A", None, positive=True), "beta": t.number("beta", None, positive=True),
+             "gamma": t.number("gamma", None), "n": t.number("n", None, positive=True), "d": t.number("d", None),
+             "method": t.string("method", ("closed_form", "rk4")),
+             "substeps": t.integer("substeps", 8, minimum=1, maximum=MAX_SUBSTEPS)}
+        if o["method"] == "closed_form" and o["n"] not in (None, 1.0):
+            raise t.error(f"method 'closed_form' needs n = 1, got n = {o['n']}", "method")
+        if o["method"] == "closed_form" and o["smoothing"] != 0:
+            raise t.error("method 'closed_form' needs smoothing = 0 (use method = 'rk4')", "method")
+        if o["method"] is None:
+            levels = raw.get("fit", {}).get("smoothing") if isinstance(raw.get("fit"), Mapping) else None
+            smooth = o["smoothing"] != 0 or (isinstance(levels, list) and any(
+                finite_number(s) and s != 0 for s in levels))
+            o["method"] = "closed_form" if (o["n"] in (None, 1.0) and not smooth) else "rk4"
+        return o
+
+    def parameters(self, o):
+        return ("A", "beta", "gamma", "n", "d")
+
+    def required(self, o):
+        return ("A", "beta", "gamma", "d")
+
+    def placeholder(self, o):
+        return {"A": 0.1, "beta": 0.01, "gamma": 0.01, "n": 1.0, "d": 1.0}
+
+    def start(self, o, data):
+        recs = data.records()
+        v, y = data.inputs(), data.outputs()
+        a = chord(v, y)
+        A = max(0.2 * abs(a), TINY)
+        z_max = 0.05 * float(np.ptp(y)) / abs(a) * A if np.ptp(y) > 0 else A
+        beta = A / (2 * max(z_max, TINY))
+        bw = pj.BoucWen(A, beta, beta, output="z")
+        z = np.concatenate([np.asarray(bw(jnp.asarray(vv))) for vv, _, _ in recs])
+        d = float(np.dot(v, y + z) / np.dot(v, v))
+        return {"A": A, "beta": beta, "gamma": beta, "n": 1.0, "d": d}
+
+    def build(self, o, v, config):
+        return pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(v["n"]), f64(v["d"]),
+                          smoothing=f64(o["smoothing"]), method=o["method"], substeps=o["substeps"])
+
+    def constraints(self, o):
+        return {"A": pj.Positive, "beta": pj.Positive, "n": pj.Positive}
+
+    def default_free(self, o, config):
+        # the exponent has no effect in the closed form (n = 1)
+        return ("A", "beta", "gamma", "d") + (("n",) if o["method"] == "rk4" else ())
+
+    def cost(self, o):
+        return max(1, o["substeps"] // 4)
+
+
+class MaxwellSlipKind(BlockKind):
+    """`pj.MaxwellSlip`: `elements` (≤ 100), `stiffness`, `breakaway`, `smoothing`. Start: non-negative least
+    squares of the stiffnesses on a uniform grid of slip thresholds up to 1.2 max|v|."""
+
+    table, name = "hysteresis", "maxwell_slip"
+    keys = ("elements", "smoothing", "stiffness", "breakaway")
+
+    def parse(self, t, raw):
+        n, (k, f) = t.sized_vectors("elements", 8, MAX_ELEMENTS, {"stiffness": dict(positive=True),
+                                                               "breakaway": dict(positive=True)})
+        return {"smoothing": t.number("smoothing", 0.0, nonnegative=True), "elements": n, "stiffness": k,
+                "breakaway": f}
+
+    def parameters(self, o):
+        return ("stiffness", "breakaway")
+
+    def placeholder(self, o):
+        n = o["elements"]
+        return {"stiffness": np.ones(n), "breakaway": np.arange(1.0, n + 1)}
+
+    def start(self, o, data):
+        import scipy.optimize
+
+        n, recs = o["elements"], data.records()
+        # thresholds up to 1.2 max|v|: the widest elements stay elastic (the linear part of the response)
+        r = 1.2 * data.max_input() * np.arange(1, n + 1) / n
+        play = pj.PlayOperator(jnp.asarray(r))
+        a = np.concatenate([v[:, None] - np.asarray(play(jnp.asarray(v))) for v, _, _ in recs])
+        y = data.outputs()
+        sign = 1.0 if data.static_gain() >= 0 else -1.0
+        k, _ = scipy.optimize.nnls(a, sign * y)
+        k = np.maximum(k, 1e-3 * max(float(k.max()), TINY))
+        return {"stiffness": k, "breakaway": k * r}
+
+    def build(self, o, v, config):
+        return pj.MaxwellSlip(f64(v["stiffness"]), f64(v["breakaway"]), smoothing=f64(o["smoothing"]))
+
+    def constraints(self, o):
+        return {"stiffness": pj.Positive, "breakaway": pj.Positive}
+
+
+class PreisachKind(BlockKind):
+    r"""`pj.Preisach.uniform`: `levels` (≤ 30) of a uniform triangular relay grid on `range = [v_min, v_max]`
+    (default ±1.05 max|v| of the data), relay weights `mu` (fitted), `smoothing` (relay switching width in volts;
+    0 = exact, whose weights still enter linearly). Start: the weights by ridge-regularised linear least squares
+    on the relay outputs (the output is linear in them). The switching values stay fixed at the grid."""
+
+    table, name = "hysteresis", "preisach"
+    keys = ("levels", "range", "mu", "smoothing")
+
+    def parse(self, t, raw):
+        n = t.integer("levels", 8, minimum=1, maximum=MAX_LEVELS_PREISACH)
+        rng = t.vector("range", 2, ascending=True)
+        mu = t.vector("mu", n * (n + 1) // 2)
+        return {"levels": n, "range": None if rng is None else (float(rng[0]), float(rng[1])), "mu": mu,
+                "smoothing": t.number("smoothing", 0.0, nonnegative=True)}
+
+    def parameters(self, o):
+        return ("mu", "range")
+
+    def required(self, o):
+        return ("mu", "range")
+
+    def placeholder(self, o):
+        n = o["levels"]
+        return {"mu": np.zeros(n * (n + 1) // 2), "range": (-1.0, 1.0)}
+
+    def start(self, o, data):
+        vmax = 1.05 * data.max_input()
+        rng = o["range"] if o["range"] is not None else (-vmax, vmax)
+        ones = pj.Preisach.uniform(rng[0], rng[1], o["levels"], smoothing=o["smoothing"])
+        relays = jax.vmap(lambda m: eqx.tree_at(lambda p: p.mu, ones, m))(jnp.eye(ones.mu.shape[0]))
+        cols = np.concatenate([np.asarray(jax.vmap(lambda p, v=v: p(jnp.asarray(v)))(relays)).T
+                               for v, _, _ in data.records()])
+        y = data.outputs()
+        lam = 1e-8 * float(np.sum(cols**2)) / max(cols.shape[1], 1)
+        mu = np.linalg.solve(cols.T @ cols + lam * np.eye(cols.shape[1]), cols.T @ y)
+        return {"mu": mu, "range": rng}
+
+    def build(self, o, v, config):
+        rng = v["range"]
+        return pj.Preisach.uniform(float(rng[0]), float(rng[1]), o["levels"], mu=f64(v["mu"]),
+                                   smoothing=f64(o["smoothing"]))
+
+    def default_free(self, o, config):
+        return ("mu",)
+
+
+# ---- creep
+
+
+class NoCreep(_NoBlock):
+    table, name = "creep", "none"
+
+    def cold_start_args(self, o, config):
+        return {"creep_order": 0}
+
+
+def _creep_gain(data: StartData) -> float:
+    return 1.0 if data.unit_drive else data.static_gain()
+
+
+class KelvinVoigtKind(BlockKind):
+    """`pj.KelvinVoigtCreep`: `order` lags (≤ 10), `stiffnesses`, `time_constants`; in series with an instantaneous
+    compliance 1 (`k0 = 1`), in parallel without."""
+
+    table, name = "creep", "kelvin_voigt"
+    keys = ("order", "stiffnesses", "time_constants")
+
+    def parse(self, t, raw):
+        n, (k, tau) = t.sized_vectors("order", 1, MAX_CREEP_ORDER, {"stiffnesses": dict(positive=True),
+                                                                  "time_constants": dict(positive=True)})
+        return {"order": n, "stiffnesses": k, "time_constants": tau}
+
+    def parameters(self, o):
+        return ("stiffnesses", "time_constants")
+
+    def placeholder(self, o):
+        n = o["order"]
+        return {"stiffnesses": np.full(n, 10.0), "time_constants": np.geomspace(1.0, 10.0, n)}
+
+    def start(self, o, data):
+        n, dt, span = o["order"], data.dt(), data.span()
+        # one lag at a tenth of the longest record, or n lags from 1/100 to 1/3 of it; each at 1 % of the gain
+        taus = np.array([span / 10]) if n == 1 else np.geomspace(span / 100, span / 3, n)
+        gain = abs(_creep_gain(data))
+        return {"stiffnesses": np.full(n, 1.0 / max(0.01 * gain, TINY)), "time_constants": np.maximum(taus, 5 * dt)}
+
+    def build(self, o, v, config):
+        series = config.creep_structure == "series"
+        return pj.KelvinVoigtCreep(f64(v["stiffnesses"]), f64(v["time_constants"]), k0=f64(1.0) if series else None)
+
+    def constraints(self, o):
+        return {"stiffnesses": pj.Positive, "time_constants": pj.Positive}
+
+    def cold_start_args(self, o, config):
+        return {"creep_order": o["order"]} if config.creep_structure == "parallel" else None
+
+    def from_cold_start(self, o, block):
+        if block is None:
+            return None
+        return {"stiffnesses": np.asarray(block.stiffnesses), "time_constants": np.asarray(block.time_constants)}
+
+
+class LogarithmicKind(BlockKind):
+    """`pj.LogarithmicCreep`: `gamma`, `t0`, `gain` (fixed by default: only $g\\gamma$ is identifiable in parallel
+    with the hysteresis)."""
+
+    table, name = "creep", "logarithmic"
+    keys = ("gamma", "t0", "gain")
+
+    def parse(self, t, raw):
+        return {"gamma": t.number("gamma", None), "t0": t.number("t0", None, positive=True),
+                "gain": t.number("gain", None)}
+
+    def parameters(self, o):
+        return ("gamma", "t0", "gain")
+
+    def required(self, o):
+        return ("gamma", "t0")
+
+    def placeholder(self, o):
+        return {"gamma": 0.01, "t0": 1.0, "gain": 1.0}
+
+    def start(self, o, data):
+        return {"gamma": 0.01, "t0": 10 * data.dt(), "gain": _creep_gain(data)}
+
+    def build(self, o, v, config):
+        return pj.LogarithmicCreep(f64(v["gamma"]), f64(v["t0"]), gain=f64(v["gain"]),
+                                   instantaneous=config.creep_structure == "series")
+
+    def constraints(self, o):
+        return {"t0": pj.Positive}
+
+    def default_free(self, o, config):
+        return ("gamma", "t0")
+
+
+class LagKind(BlockKind):
+    """`pj.LagCreep`: `lags` (≤ 10), `fractions` (sum < 1), `time_constants`; DC gain 1, so only in series."""
+
+    table, name = "creep", "lag"
+    keys = ("lags", "fractions", "time_constants")
+    structures = ("series",)
+    structure_note = ("a 'lag' creep is DC-normalised (its gain is 1): it belongs in series after the hysteresis; "
+                      "use 'kelvin_voigt' for creep in parallel")
+
+    def parse(self, t, raw):
+        n, (alpha, tau) = t.sized_vectors("lags", 1, MAX_CREEP_ORDER, {"fractions": dict(positive=True),
+                                                                     "time_constants": dict(positive=True)})
+        if alpha is not None and sum(alpha) >= 1:
+            raise t.error(f"the fractions must add up to less than 1 (the rest responds at once), got {sum(alpha)}",
+                          "fractions")
+        return {"lags": n, "fractions": alpha, "time_constants": tau}
+
+    def parameters(self, o):
+        return ("fractions", "time_constants")
+
+    def placeholder(self, o):
+        n = o["lags"]
+        return {"fractions": np.full(n, 0.1 / n), "time_constants": np.geomspace(1e-2, 1.0, n)}
+
+    def start(self, o, data):
+        n, lo = o["lags"], 50 * data.dt()
+        # 20 % of the response lagging, split evenly; lags from 50 samples to a tenth of the longest record
+        taus = np.array([lo]) if n == 1 else np.geomspace(lo, max(data.span() / 10, 2 * lo), n)
+        return {"fractions": np.full(n, 0.2 / n), "time_constants": taus}
+
+    def build(self, o, v, config):
+        return pj.LagCreep(f64(v["fractions"]), f64(v["time_constants"]))
+
+    def constraints(self, o):
+        return {"fractions": pj.Fractions, "time_constants": pj.Positive}
+
+
+# ---- dynamics
+
+
+class TransferFunctionKind(BlockKind):
+    r"""`pj.StableTransferFunction` (the default `[dynamics]` kind): `order` (0–8) poles, `order // 2` pairs
+    (`omega`, `zeta`) and `order % 2` real (`poles`); `zero_pairs` (≤ the pole pairs) complex zero pairs
+    (`zero_omega`, `zero_zeta`: a mode with an antiresonance, e.g. a low-frequency mode of the mount) and
+    `real_zeros` (`zeros`); `gain` (DC gain, default 1). Zero pair $i$ starts at 1.25 $\omega_i$ with $\zeta_i$
+    (near the pole pair, so the mode starts weak), a real zero at 1.25 times its pole."""
+
+    table, name = "dynamics", "transfer_function"
+    keys = ("order", "gain", "omega", "zeta", "poles", "zero_pairs", "zero_omega", "zero_zeta", "real_zeros", "zeros")
+
+    def parse(self, t, raw):
+        order = t.integer("order", None, allowed=DYNAMICS_ORDERS)
+        if order is None:
+            raise t.error(f"missing; allowed values: {', '.join(map(str, DYNAMICS_ORDERS))}", "order")
+        n2, n1 = divmod(order, 2)
+        for k, n in (("omega", n2), ("zeta", n2), ("poles", n1)):
+            if n == 0 and k in t.data:
+                raise t.error(f"not used with order = {order}", k)
+        m2, (zw, zz) = t.sized_vectors("zero_pairs", 0, n2, {"zero_omega": dict(positive=True), "zero_zeta": {}},
+                                       minimum=0)
+        m1, (z,) = t.sized_vectors("real_zeros", 0, n1 + 2 * (n2 - m2), {"zeros": {}}, minimum=0)
+        return {"order": order, "gain": t.number("gain", None, nonzero=True),
+                "omega": t.vector("omega", n2, positive=True), "zeta": t.vector("zeta", n2, positive=True),
+                "poles": t.vector("poles", n1, negative=True), "zero_pairs": m2, "zero_omega": zw, "zero_zeta": zz,
+                "real_zeros": m1, "zeros": z}
+
+    def parameters(self, o):
+        n2, n1 = divmod(o["order"], 2)
+        return (("omega", "zeta") if n2 else ()) + (("poles",) if n1 else ()) + (
+            ("zero_omega", "zero_zeta") if o["zero_pairs"] else ()) + (("zeros",) if o["real_zeros"] else ()) + (
+            "gain",)
+
+    def required(self, o):
+        return tuple(p for p in self.parameters(o) if p != "gain")
+
+    def _zeros(self, o, omega, zeta, poles) -> dict:
+        m2, m1 = o["zero_pairs"], o["real_zeros"]
+        fast = np.concatenate([1.25 * np.asarray(poles), -1.25 * np.asarray(omega)])
+        return {"zero_omega": 1.25 * np.asarray(omega)[:m2], "zero_zeta": np.asarray(zeta)[:m2],
+                "zeros": (fast[:m1] if fast.size >= m1 else np.full(m1, -1.0))}
+
+    def placeholder(self, o):
+        n2, n1 = divmod(o["order"], 2)
+        out = {"omega": np.geomspace(1e3, 1e4, n2) if n2 else np.zeros(0), "zeta": np.full(n2, 0.5),
+               "poles": np.full(n1, -1e3), "gain": 1.0}
+        return out | self._zeros(o, _given(o, "omega", out), _given(o, "zeta", out), _given(o, "poles", out))
+
+    def start(self, o, data):
+        n2, n1 = divmod(o["order"], 2)
+        # rule of thumb: modes at 1/10 (and 1/4, ...) of the sampling rate, damping 0.5, real poles at 1/10
+        nyquist = 0.5 / data.dt()
+        fractions = np.geomspace(0.2, 0.8, n2) if n2 > 2 else np.array([0.2, 0.5])[:n2]
+        out = {"omega": 2 * np.pi * nyquist * fractions, "zeta": np.full(n2, 0.5),
+               "poles": -2 * np.pi * 0.2 * nyquist * np.geomspace(1.0, 3.0, n1) if n1 else np.zeros(0),
+               "gain": data.static_gain() if data.unit_drive else 1.0}
+        return out | self._zeros(o, _given(o, "omega", out), _given(o, "zeta", out), _given(o, "poles", out))
+
+    def from_cold_start(self, o, block):
+        # only all-pole even orders are in the cold start's family (`cold_start_args`)
+        return None if block is None else {"omega": np.asarray(block.omega), "zeta": np.asarray(block.zeta),
+                                           "gain": 1.0}
+
+    def values(self, o, data):
+        out = super().values(o, data)
+        for k in ("omega", "zeta", "poles", "zero_omega", "zero_zeta", "zeros"):
+            out.setdefault(k, np.zeros(0))
+        return out
+
+    def build(self, o, v, config):
+        if not o["order"] and not (config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics):
+            return None  # without hysteresis the dynamics' DC gain is the only scale from volts to metres
+        return pj.StableTransferFunction(f64(v["gain"]), omega=f64(v["omega"]), zeta=f64(v["zeta"]),
+                                         poles=f64(v["poles"]), zeros=f64(v["zeros"]),
+                                         zero_omega=f64(v["zero_omega"]), zero_zeta=f64(v["zero_zeta"]))
+
+    def constraints(self, o):
+        n2, n1 = divmod(o["order"], 2)
+        return ({"omega": pj.Positive, "zeta": pj.Positive} if n2 else {}) | ({"poles": Negative} if n1 else {}) | (
+            {"zero_omega": pj.Positive} if o["zero_pairs"] else {})
+
+    def default_free(self, o, config):
+        # the DC gain duplicates the scale of the hysteresis; it is the scale when there is no hysteresis
+        scale = config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics
+        return (("gain",) if scale else ()) + tuple(p for p in self.parameters(o) if p != "gain")
+
+    def cold_start_args(self, o, config):
+        if o["order"] % 2 or o["zero_pairs"] or o["real_zeros"]:
+            return None
+        return {"dynamics_order": o["order"]}
+
+
+def _given(o: dict, key: str, made: dict) -> np.ndarray:
+    return np.asarray(made[key] if o.get(key) is None else o[key])
+
+
+def f64(x) -> jax.Array:
+    """A float64 JAX array of `x` (CONFIG values are float64 whatever the default dtype)."""
+    return jnp.asarray(np.asarray(x, np.float64))
+
+
+for _kind in (PrandtlIshlinskiiKind(), BoucWenKind(), MaxwellSlipKind(), PreisachKind(), NoHysteresis(),
+              KelvinVoigtKind(), LogarithmicKind(), LagKind(), NoCreep(), TransferFunctionKind()):
+    register_kind(_kind)

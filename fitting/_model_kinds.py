@@ -1,0 +1,350 @@
+"""The whole-model kinds of a CONFIG: `pj.Actuator` (no `[observer]` table) and the observers (`[observer] kind`).
+
+A `ModelKind` says which tables the model uses besides its blocks' (the actuator's `[charge]` and `[state]`), how
+they are validated, which channels the model predicts and reads, the quasi-static output its hysteresis and creep
+are started from, how the blocks are put together, its own constraints, default free set and data-driven state.
+The generic configuration code (`fitting._config`) names none of them.
+"""
+
+from collections.abc import Mapping
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+from ._kinds import ConfigTable, StartData, f64, finite_number
+
+
+class ModelKind:
+    """A kind of whole model (see the module docstring).
+
+    **Class attributes:**
+
+    - `table`: the CONFIG table naming it (`"observer"`), or `None` for the default model (no such table).
+    - `name`: the kind's name in that table.
+    - `keys`: the keys of that table besides `kind`.
+    - `tables`: the other tables the model uses besides `[hysteresis]` and `[creep]` (an unused table present in
+      the CONFIG is an error).
+    - `structures`: the creep structures it supports.
+    - `scale_in_dynamics`: without hysteresis, the dynamics' gain carries the scale from volts to the output.
+    - `cold_start`: the model is a `pj.Actuator`, so `fitting.cold_start_actuator` applies to it.
+    """
+
+    table: ClassVar[str | None] = "observer"
+    name: ClassVar[str]
+    keys: ClassVar[tuple[str, ...]] = ()
+    tables: ClassVar[tuple[str, ...]] = ()
+    structures: ClassVar[tuple[str, ...]] = ("parallel", "series")
+    scale_in_dynamics: ClassVar[bool] = False
+    cold_start: ClassVar[bool] = False
+
+    def parse(self, t: ConfigTable | None, raw: Mapping, source: str) -> dict:
+        """The model's validated options (from its own table `t` and the tables in `tables`)."""
+        return {}
+
+    def outputs(self, config) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    def inputs(self, config) -> tuple[str, ...]:
+        """Measured channels the model reads besides `t` and `v_in`."""
+        return ()
+
+    def predictor(self, config):
+        raise NotImplementedError
+
+    def records(self, config, dataset) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """`(v_in, y, dt)` per experiment: `y` the quasi-static output of hysteresis + creep (for their starts)."""
+        raise NotImplementedError
+
+    def missing(self, config) -> list[str]:
+        """Values of the model's own tables a forward simulation needs and the file does not give."""
+        return []
+
+    def build(self, config, blocks: dict, data: StartData | None):
+        raise NotImplementedError
+
+    def constraints(self, config) -> dict[str, type]:
+        """Attribute of the model → the `pj.AbstractReparam` it is fitted under."""
+        return {}
+
+    def default_free(self, config) -> tuple[str, ...]:
+        """The model's own parameters fitted by default (after its blocks')."""
+        return ()
+
+    def fit_free(self, config, free: list[str], targets) -> list[str]:
+        """The default free set for these target channels."""
+        return free
+
+    def start_state(self, config, model, dataset):
+        """Data-driven values of the model's own state parameters (default: none)."""
+        return model
+
+
+_MODEL_KINDS: dict[str, ModelKind] = {}
+
+
+def register_model_kind(kind: ModelKind, *, replace: bool = False) -> ModelKind:
+    """Make a whole-model kind available to CONFIG files (`[observer] kind = "<kind.name>"`)."""
+    if not isinstance(kind, ModelKind) or kind.table is None:
+        raise PiezojaxValueError("`kind` must be a fitting.ModelKind instance with a `table`")
+    if kind.name in _MODEL_KINDS and not replace:
+        raise PiezojaxValueError(f"a model kind named {kind.name!r} is already registered")
+    _MODEL_KINDS[kind.name] = kind
+    return kind
+
+
+def model_kinds() -> tuple[str, ...]:
+    return tuple(_MODEL_KINDS)
+
+
+def get_model_kind(name: str) -> ModelKind:
+    return _MODEL_KINDS[name] if name != ActuatorModel.name else ACTUATOR
+
+
+# ---------------------------------------------------------------------------------------------- the actuator
+
+
+_STATE_KEYS = ("offset", "prehistory")
+_CHARGE_KEYS = ("capacitance", "coupling")
+
+
+class ActuatorModel(ModelKind):
+    r"""`pj.Actuator`: the blocks, `[charge]` ($q = C_p V + T\delta$: `capacitance`, `coupling`) and `[state]`
+    (`offset`, `prehistory`: `true` fitted from a data-driven start, `false` absent, or a number, the start)."""
+
+    table, name = None, "actuator"
+    tables = ("dynamics", "charge", "state")
+    scale_in_dynamics = True
+    cold_start = True
+
+    def parse(self, t, raw, source):
+        out: dict = {"charge": None, "state": {}}
+        if "charge" in raw:
+            cht = ConfigTable(source, "charge", raw["charge"], _CHARGE_KEYS)
+            out["charge"] = {"capacitance": cht.number("capacitance", None, nonnegative=True),
+                             "coupling": cht.number("coupling", None)}
+        if "state" in raw:
+            st = ConfigTable(source, "state", raw["state"], _STATE_KEYS)
+            if "kind" in st.data:
+                raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(_STATE_KEYS)}", "kind")
+            for key in _STATE_KEYS:
+                if key not in st.data:
+                    continue
+                value = st.data[key]
+                if not (isinstance(value, bool) or finite_number(value)):
+                    raise st.error(f"must be true (fitted from the data), false (none) or a number (its start "
+                                   f"value), got {value!r}", key)
+                out["state"][key] = value if isinstance(value, bool) else float(value)
+            h = raw.get("hysteresis", {})
+            if out["state"].get("prehistory", False) is not False and h.get("kind", "none") == "none":
+                raise st.error("a prehistory sets the hysteresis' remanent state; the model has no hysteresis",
+                               "prehistory")
+        return out
+
+    @staticmethod
+    def offset(config):
+        return config.model_options["state"].get("offset", True)
+
+    @staticmethod
+    def prehistory(config):
+        return config.model_options["state"].get("prehistory", False)
+
+    def outputs(self, config):
+        return ("displacement", "charge", "current") if config.charge is not None else ("displacement",)
+
+    def predictor(self, config):
+        from ._predict import actuator_predictor
+
+        return actuator_predictor()
+
+    def records(self, config, dataset):
+        recs = [(np.asarray(e.v_in), np.asarray(e["displacement"]), e.dt) for e in dataset if e.has("displacement")]
+        if not recs:
+            raise PiezojaxValueError("data-driven initial values need data files with a 'displacement' column "
+                                     "(or give every parameter value explicitly in the configuration)")
+        return recs
+
+    def missing(self, config):
+        return ["[state] prehistory"] if self.prehistory(config) is True else []
+
+    def build(self, config, blocks, data):
+        cap = coup = 0.0
+        if config.charge is not None:
+            cap, coup = self._charge(config, data)
+        offset, pre = self.offset(config), self.prehistory(config)
+        offset = 0.0 if isinstance(offset, bool) else offset
+        pre = None if pre is False else (0.0 if pre is True else pre)
+        return pj.Actuator(blocks["hysteresis"], blocks["creep"], blocks["dynamics"], capacitance=f64(cap),
+                           coupling=f64(coup), structure=config.creep_structure, offset=f64(offset),
+                           prehistory=None if pre is None else f64(pre))
+
+    def default_free(self, config):
+        return (("capacitance", "coupling") if config.charge is not None else ()) + (
+            ("offset",) if self.offset(config) is not False else ()) + (
+            ("prehistory",) if self.prehistory(config) is not False else ())
+
+    def fit_free(self, config, free, targets):
+        if targets is not None and not {"charge", "current"} & set(targets):
+            # the displacement does not depend on them
+            free = [p for p in free if p not in ("capacitance", "coupling")]
+        return free
+
+    def _charge(self, config, data) -> tuple[float, float]:
+        o = config.charge
+        cap, coup = o.get("capacitance"), o.get("coupling")
+        if cap is not None and coup is not None:
+            return cap, coup
+        if data is None:
+            return (1e-9 if cap is None else cap), (0.0 if coup is None else coup)
+        # q = C v + T δ by least squares over the experiments that measured the charge (and the displacement)
+        rows, rhs = [], []
+        for e in data.dataset:
+            if not e.has("charge"):
+                continue
+            q = np.asarray(e["charge"])
+            d = np.asarray(e["displacement"]) if e.has("displacement") else np.zeros_like(q)
+            if cap is not None:
+                q = q - cap * np.asarray(e.v_in)
+            if coup is not None:
+                q = q - coup * d
+            cols = ([] if cap is not None else [np.asarray(e.v_in)]) + ([] if coup is not None else [d])
+            rows.append(np.column_stack(cols))
+            rhs.append(q)
+        if not rows:
+            raise PiezojaxValueError(
+                f"{config.source}: [charge]: give 'capacitance' and 'coupling' explicitly, or fit on data "
+                "files with a 'charge' column")
+        coef = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
+        i = 0
+        if cap is None:
+            cap, i = max(float(coef[0]), 0.0), 1
+        if coup is None:
+            coup = float(coef[i])
+        return cap, coup
+
+    def start_state(self, config, model, dataset):
+        """The offset (the mean residual) and the prehistory (the best of a grid of excursions from -max|v| to
+        max|v|, each with its offset), where the file gives no number."""
+        from ._config import _displacement, _start_error
+
+        offset, pre = self.offset(config), self.prehistory(config)
+        if offset is not True and pre is not True:
+            return model
+        recs = [e for e in dataset if e.has("displacement")]
+        if not recs:
+            return model
+
+        def with_offset(m):
+            if offset is not True:
+                return m
+            res = np.concatenate([np.asarray(e["displacement"]) - np.asarray(
+                _displacement(m, jnp.asarray(e.v_in), jnp.asarray(e.dt))) for e in recs])
+            b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
+            return eqx.tree_at(lambda a: a.offset, m, jnp.asarray(b + float(m.offset), m.offset.dtype))
+
+        if pre is not True:
+            return with_offset(model)
+        vmax = max(float(np.max(np.abs(e.v_in))) for e in recs)
+        best, best_err = None, np.inf
+        for u in vmax * np.linspace(-1.0, 1.0, 9):
+            cand = with_offset(eqx.tree_at(lambda a: a.prehistory, model, jnp.asarray(u, model.prehistory.dtype)))
+            err = _start_error(cand, recs)
+            if best is None or err < best_err:
+                best, best_err = cand, err
+        return best
+
+
+ACTUATOR = ActuatorModel()
+
+
+# ---------------------------------------------------------------------------------------------- observers
+
+
+_OBSERVER_REQUIRED = (
+    "integrator_capacitance",
+    "reference_capacitance",
+    "leakage_resistance",
+    "force_sensitivity",
+    "displacement_coefficient",
+    "stiffness",
+)
+
+
+class CurrentIntegrationObserver(ModelKind):
+    """`pj.ForceDisplacementObserver`, paper 001's self-sensing observer: displacement and force from `v_in` and
+    the measured integrator output `v_out`; `[hysteresis]` and `[creep]` are its charge operators (creep in
+    parallel). The circuit constants are fixed by default (scaling all of them with β and the operators leaves the
+    estimates unchanged); without hysteresis, `capacitance_p` is fitted."""
+
+    name = "current_integration"
+    keys = _OBSERVER_REQUIRED + ("bias_current", "capacitance_p", "filter_cutoff")
+    structures = ("parallel",)
+
+    def parse(self, t, raw, source):
+        missing = [k for k in _OBSERVER_REQUIRED if k not in t.data]
+        if missing:
+            raise t.error(f"missing key(s) {', '.join(missing)} (the circuit and beam constants)")
+        out = {}
+        for k in self.keys:
+            positive = k not in ("bias_current", "displacement_coefficient", "capacitance_p")
+            out[k] = t.number(k, None, positive=positive, nonnegative=k == "capacitance_p",
+                              nonzero=k == "displacement_coefficient")
+        return {k: v for k, v in out.items() if v is not None}
+
+    def outputs(self, config):
+        return ("displacement", "force")
+
+    def inputs(self, config):
+        return ("v_out",)
+
+    def predictor(self, config):
+        from ._predict import observer_predictor
+
+        return observer_predictor(force=True)
+
+    def records(self, config, dataset):
+        o = config.model_options
+        plain = pj.ForceDisplacementObserver(
+            o["integrator_capacitance"], o["reference_capacitance"], o["leakage_resistance"],
+            o.get("bias_current", 0.0), o["force_sensitivity"], o["displacement_coefficient"], o["stiffness"])
+        recs = []
+        for e in dataset:
+            if not e.has("v_out"):
+                continue
+            q = np.asarray(plain.compensated_charge(jnp.asarray(e.v_in), jnp.asarray(e["v_out"]), e.dt))
+            if e.has("force"):
+                q = q - o["force_sensitivity"] * np.asarray(e["force"])
+            recs.append((np.asarray(e.v_in), q, e.dt))
+        if not recs:
+            raise PiezojaxValueError("initial values for the observer's operators need data files with a 'v_out' "
+                                     "column (or give the values explicitly in the configuration)")
+        return recs
+
+    def build(self, config, blocks, data):
+        o = config.model_options
+        fc, cp = o.get("filter_cutoff"), o.get("capacitance_p")
+        if cp is None:
+            if not config.hysteresis_kind.empty:
+                cp = 0.0
+            else:  # C_P: the slope of the compensated charge against V
+                cp = 1e-9 if data is None else max(data.static_gain(), np.finfo(float).tiny)
+        return pj.ForceDisplacementObserver(
+            f64(o["integrator_capacitance"]), f64(o["reference_capacitance"]), f64(o["leakage_resistance"]),
+            f64(o.get("bias_current", 0.0)), f64(o["force_sensitivity"]), f64(o["displacement_coefficient"]),
+            f64(o["stiffness"]), capacitance_p=f64(cp), hysteresis=blocks["hysteresis"], creep=blocks["creep"],
+            filter_cutoff=None if fc is None else f64(fc),
+        )
+
+    def constraints(self, config):
+        return {"force_sensitivity": pj.Positive, "stiffness": pj.Positive}
+
+    def default_free(self, config):
+        return ("force_sensitivity", "displacement_coefficient", "stiffness") + (
+            ("capacitance_p",) if config.hysteresis_kind.empty else ())
+
+
+register_model_kind(CurrentIntegrationObserver())

@@ -1,0 +1,224 @@
+"""The registry of CONFIG block kinds: a new kind registered from one file (this one) is parsed, started from data,
+built, constrained, fitted and saved like the built-in ones; the Preisach kind and dynamics with zeros."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fitting
+import piezojax as pj
+from fitting import parse_config
+
+DT = 1e-3
+T = np.arange(1500) * DT
+V = 60 * np.sin(2 * np.pi * 2 * T) * np.exp(-0.6 * T) + 10 * np.sin(2 * np.pi * 7 * T)
+
+
+# ---------------------------------------------------------------------------------------------- a user's own kind
+
+
+class WeightedPlay(pj.AbstractHysteresis):
+    """y = w P_r[v]: one play operator with a weight (a user's own block class, written without the registry)."""
+
+    weight: jax.Array
+    threshold: jax.Array
+    smoothing: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))  # exact (not used)
+
+    def init(self):
+        return jnp.zeros(())
+
+    def step(self, state, v):
+        p = jnp.clip(state, v - self.threshold, v + self.threshold)
+        return p, self.weight * p
+
+
+class WeightedPlayKind(fitting.BlockKind):
+    table, name, keys = "hysteresis", "weighted_play", ("weight", "threshold")
+
+    def parse(self, t, raw):
+        return {"weight": t.number("weight"), "threshold": t.number("threshold", positive=True)}
+
+    def parameters(self, o):
+        return ("weight", "threshold")
+
+    def placeholder(self, o):
+        return {"weight": 1.0, "threshold": 1.0}
+
+    def start(self, o, data):
+        return {"weight": data.static_gain(), "threshold": 0.1 * data.max_input()}
+
+    def build(self, o, v, config):
+        return WeightedPlay(jnp.asarray(v["weight"], float), jnp.asarray(v["threshold"], float))
+
+    def constraints(self, o):
+        return {"threshold": pj.Positive}
+
+
+@pytest.fixture
+def weighted_play():
+    kind = fitting.register_kind(WeightedPlayKind())
+    try:
+        yield kind
+    finally:
+        fitting.unregister_kind("hysteresis", "weighted_play")
+
+
+def test_a_kind_registered_from_one_file_is_configured_started_fitted_and_saved(weighted_play, tmp_path):
+    truth = pj.Actuator(WeightedPlay(jnp.asarray(2.0e-7), jnp.asarray(12.0)), offset=1e-7)
+    y = np.asarray(truth.simulate(jnp.asarray(V), DT).displacement)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, displacement=y, name="r")])
+    cfg = parse_config('[hysteresis]\nkind = "weighted_play"\n', "wp.toml")
+    assert "weighted_play" in fitting.registered_kinds("hysteresis")
+    assert cfg.default_free() == ("hysteresis.weight", "hysteresis.threshold", "offset")
+    # its keys are validated by the generic table reader, with the file and key in the message
+    with pytest.raises(pj.PiezojaxValueError, match=r"^wp.toml: \[hysteresis\] threshold: must be > 0"):
+        parse_config('[hysteresis]\nkind = "weighted_play"\nthreshold = -1.0\n', "wp.toml")
+    with pytest.raises(pj.PiezojaxValueError, match="unknown key 'plays'; allowed keys for kind 'weighted_play'"):
+        parse_config('[hysteresis]\nkind = "weighted_play"\nplays = 3\n', "wp.toml")
+    # the common keys of the table (an output polynomial) come with it
+    poly = parse_config('[hysteresis]\nkind = "weighted_play"\npolynomial = 2\n', "wp.toml")
+    assert "hysteresis.hysteresis.threshold" in poly.default_free()
+    start = cfg.build(ds)
+    assert isinstance(start.hysteresis.threshold, pj.Positive)  # its constraint
+    u = pj.unwrap(start)
+    assert float(u.hysteresis.threshold) == pytest.approx(0.1 * np.max(np.abs(V)))
+    result = fitting.fit(start, ds, predictor=cfg.predictor(), free=cfg.fit_free(("displacement",)), max_steps=60)
+    fitted = pj.unwrap(result.model)
+    assert float(fitted.hysteresis.threshold) == pytest.approx(12.0, rel=1e-5)
+    assert float(fitted.hysteresis.weight) == pytest.approx(2.0e-7, rel=1e-5)
+    # the command line, in-process with the kind registered: fit, save, rebuild from config.toml, predict
+    from fitting.cli import main
+
+    (tmp_path / "wp.toml").write_text('[hysteresis]\nkind = "weighted_play"\n')
+    fitting.save_experiment(ds[0], tmp_path / "r.npz")
+    assert main(["fit", str(tmp_path / "wp.toml"), str(tmp_path / "r.npz"), "--out", str(tmp_path / "fit"),
+                 "--no-figures", "--quiet"]) == 0
+    back = fitting.load_model(tmp_path / "fit", like=cfg.build(None))
+    assert float(pj.unwrap(back).hysteresis.threshold) == pytest.approx(12.0, rel=1e-5)
+    assert main(["predict", str(tmp_path / "fit"), str(tmp_path / "r.npz"), "--out", str(tmp_path / "pred")]) == 0
+    assert (tmp_path / "pred" / "metrics.json").is_file()
+
+
+def test_registry_refuses_duplicates_and_foreign_objects(weighted_play):
+    with pytest.raises(pj.PiezojaxValueError, match="already registered"):
+        fitting.register_kind(WeightedPlayKind())
+    fitting.register_kind(WeightedPlayKind(), replace=True)
+    with pytest.raises(pj.PiezojaxValueError, match="fitting.BlockKind instance"):
+        fitting.register_kind(object())
+
+    class Bad(fitting.BlockKind):
+        table, name = "sensor", "x"
+
+    with pytest.raises(pj.PiezojaxValueError, match="`kind.table` must be one of hysteresis, creep, dynamics"):
+        fitting.register_kind(Bad())
+    # an unknown kind lists the registered ones, the new one included
+    with pytest.raises(pj.PiezojaxValueError, match="allowed kinds: .*preisach.*weighted_play"):
+        parse_config('[hysteresis]\nkind = "stop"\n', "m.toml")
+
+
+def test_generic_config_code_names_no_kind():
+    """Every kind-specific name lives in the registry: the generic module's code (docstrings aside) names none."""
+    import ast
+    import inspect
+
+    import fitting._config as generic
+
+    tree = ast.parse(inspect.getsource(generic))
+    docstrings = {id(n.body[0].value) for n in ast.walk(tree)
+                  if isinstance(n, ast.Module | ast.ClassDef | ast.FunctionDef) and n.body
+                  and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    code = " ".join(n.value for n in ast.walk(tree)
+                    if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docstrings)
+    code += " ".join(n.id for n in ast.walk(tree) if isinstance(n, ast.Name))
+    for kind in ("prandtl_ishlinskii", "bouc_wen", "maxwell_slip", "preisach", "kelvin_voigt", "logarithmic", "lag",
+                 "current_integration", "substeps", "plays"):
+        assert kind not in code.split() and f"'{kind}'" not in code, kind
+
+
+# ---------------------------------------------------------------------------------------------- Preisach
+
+
+def test_preisach_kind_starts_at_the_truth_on_its_own_grid():
+    """The relay weights enter linearly: on the grid the start uses, the linear least-squares start is exact."""
+    vmax = 1.05 * np.max(np.abs(V))
+    rng = np.random.default_rng(0)
+    grid = pj.Preisach.uniform(-vmax, vmax, 5)
+    mu = rng.uniform(0.0, 1.0, grid.mu.shape) * 1e-7
+    truth = pj.Actuator(pj.Preisach.uniform(-vmax, vmax, 5, mu=mu), offset=0.0)
+    y = np.asarray(truth.simulate(jnp.asarray(V), DT).displacement)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, displacement=y, name="r")])
+    cfg = parse_config('[hysteresis]\nkind = "preisach"\nlevels = 5\n[state]\noffset = false\n', "p.toml")
+    assert cfg.default_free() == ("hysteresis.mu",)
+    start = pj.unwrap(cfg.build(ds))
+    err = np.asarray(start.simulate(jnp.asarray(V), DT).displacement) - y
+    assert np.sqrt(np.mean(err**2)) < 1e-6 * np.ptp(y)
+    assert pj.unwrap(cfg.build(None)).hysteresis.mu.shape == (15,)
+    with pytest.raises(pj.PiezojaxValueError, match=r"\[hysteresis\] mu: must have 15 entries"):
+        parse_config('[hysteresis]\nkind = "preisach"\nlevels = 5\nmu = [1.0]\n', "p.toml")
+    with pytest.raises(pj.PiezojaxValueError, match=r"\[hysteresis\] range: entries must be strictly ascending"):
+        parse_config('[hysteresis]\nkind = "preisach"\nrange = [1.0, -1.0]\n', "p.toml")
+    # forward simulation needs the weights and the grid
+    with pytest.raises(pj.PiezojaxValueError, match=r"missing: \[hysteresis\] mu, \[hysteresis\] range"):
+        parse_config('[hysteresis]\nkind = "preisach"\n', "p.toml").build(None, require_values=True)
+
+
+# ---------------------------------------------------------------------------------------------- dynamics with zeros
+
+
+def test_dynamics_with_zero_pairs_are_configured_and_recovered():
+    """A resonance plus a low-frequency mode with an antiresonance (a pole pair and a zero pair near it)."""
+    text = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\nweights = [0.3, 0.2]\nthresholds = [10.0, 30.0]\n'
+            'w0 = 1.0\n[state]\noffset = false\n[dynamics]\norder = 4\nzero_pairs = 1\n')
+    cfg = parse_config(text, "d.toml")
+    assert cfg.default_free()[-4:] == ("dynamics.omega", "dynamics.zeta", "dynamics.zero_omega",
+                                       "dynamics.zero_zeta")
+    placeholder = pj.unwrap(cfg.build(None)).dynamics
+    assert placeholder.zero_omega.shape == (1,) and placeholder.omega.shape == (2,)
+    np.testing.assert_allclose(placeholder.zero_omega, 1.25 * placeholder.omega[:1])
+    omega, zeta = np.array([2 * np.pi * 9.0, 2 * np.pi * 120.0]), np.array([0.3, 0.1])
+    z_omega, z_zeta = np.array([2 * np.pi * 11.0]), np.array([0.25])
+    truth = pj.Actuator(pj.PrandtlIshlinskii([0.3, 0.2], [10.0, 30.0], w0=1.0), None,
+                        pj.StableTransferFunction(1.0, omega=omega, zeta=zeta, zero_omega=z_omega, zero_zeta=z_zeta))
+    y = np.asarray(truth.simulate(jnp.asarray(V), DT).displacement)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, displacement=y, name="r")])
+    # start 10 % off the truth, given in the file; the zero pair is fitted under its constraint
+    near = text + (f"omega = {(omega * 1.1).tolist()}\nzeta = {(zeta * 0.9).tolist()}\n"
+                   f"zero_omega = {(z_omega * 0.9).tolist()}\nzero_zeta = {(z_zeta * 1.1).tolist()}\n")
+    cfg = parse_config(near, "d.toml")
+    start = cfg.build(ds)
+    assert isinstance(start.dynamics.zero_omega, pj.Positive)
+    result = fitting.fit(start, ds, predictor=cfg.predictor(), free=["dynamics"], max_steps=100)
+    dyn = pj.unwrap(result.model).dynamics
+    np.testing.assert_allclose(dyn.omega, omega, rtol=1e-4)
+    np.testing.assert_allclose(dyn.zero_omega, z_omega, rtol=1e-4)
+    np.testing.assert_allclose(dyn.zero_zeta, z_zeta, rtol=1e-3)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ('[dynamics]\norder = 2\nzero_pairs = 2\n', "[dynamics] zero_pairs: must be <= 1"),
+    ('[dynamics]\norder = 2\nzero_pairs = 0\nzero_omega = [1.0]\n',
+     "[dynamics] zero_omega: not used with zero_pairs = 0"),
+    ('[dynamics]\norder = 4\nzero_pairs = 1\nzero_omega = [-1.0]\n', "[dynamics] zero_omega: entries must be > 0"),
+    ('[dynamics]\norder = 9\n', "[dynamics] order: must be one of 0, 1, 2, 3, 4, 5, 6, 7, 8"),
+    ('[dynamics]\nkind = "state_space"\norder = 2\n', "[dynamics] kind: unknown kind 'state_space'"),
+])
+def test_dynamics_config_errors(text, expected):
+    with pytest.raises(pj.PiezojaxValueError) as e:
+        parse_config(text, "m.toml")
+    assert expected in str(e.value), str(e.value)
+
+
+def test_every_registered_kind_builds_placeholders_that_simulate():
+    """Each built-in kind's placeholder model is a working actuator (what `fitting.load_model` rebuilds)."""
+    v = jnp.asarray(V[:200])
+    for table in ("hysteresis", "creep"):
+        for name in fitting.registered_kinds(table):
+            if name == "none":
+                continue
+            other = '[dynamics]\norder = 2\n' if table == "creep" else ""
+            cfg = parse_config(f'[{table}]\nkind = "{name}"\n{other}', "m.toml")
+            model = pj.unwrap(cfg.build(None))
+            x = np.asarray(eqx.filter_jit(lambda m: m.simulate(v, DT).displacement)(model))
+            assert x.shape == (200,) and np.all(np.isfinite(x)), (table, name)
