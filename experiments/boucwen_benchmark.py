@@ -5,26 +5,32 @@ M. Schoukens, 4TU.ResearchData doi 10.4121/12967592; this realisation from githu
 `multisine`: `u` (force, N), `y` (displacement, m), `fs` = 750 Hz; 5 periods × 8192 samples of one random-phase
 multisine (5–150 Hz, 50 N RMS), simulated from rest at sample 0, with measurement noise.
 
-Model (the equations are known, the parameters are not):
+Model: `pj.BoucWenOscillator` (the equations are known, the parameters are not),
 
 $$m\ddot y + c\dot y + k y + z = u,\qquad
-  \dot z = \alpha\dot y - \beta\left(\gamma|\dot y|\,|z|^{\nu-1}z + \delta\,\dot y\,|z|^{\nu}\right).$$
+  \dot z = \alpha\dot y - \beta\left(\gamma|\dot y|\,|z|^{\nu-1}z + \delta\,\dot y\,|z|^{\nu}\right),$$
 
-Parametrisation: $\theta = (\log m/m_0, \log c/c_0, \log k/k_0, \log\alpha/\alpha_0, g, d)$ with $m, c, k, \alpha > 0$
-by the exponential, $\beta\gamma = \beta_0 g$ and $\beta\delta = \beta_0 d$ signed. $\beta$ only ever appears
-multiplied by $\gamma$ or $\delta$, so $(\beta, \gamma, \delta)$ is not identifiable, only the two products are: $\beta$
-is fixed at a positive data scale $\beta_0 = 1/\mathrm{rms}(y)$ and $(\gamma, \delta)$ carry the fit. $\nu = 1$ by
-default, the usual Bouc–Wen choice (the $z$ equation is then piecewise linear in $z$, and $\nu$ trades off against
-$\beta$ over the range of $|z|$ the data visit); `--free-nu` adds $\log\nu$ as a seventh parameter (start 1) in a
-third stage. Measured: it moves $\nu$ to 0.99999996 in 2 LM steps and leaves every RMSE unchanged to 4 digits.
-$|z|^\nu$ uses `safe_abs_pow` (finite derivatives at $z = 0$).
+with $m, c, k, \alpha$ wrapped by `pj.constrain(..., pj.Positive)` and free; $\gamma$ and $\delta$ free and signed;
+$\beta$ and $\nu$ frozen (left out of `free`). $\beta$ only ever appears multiplied by $\gamma$ or $\delta$, so
+$(\beta, \gamma, \delta)$ is not identifiable, only the two products are: $\beta$ is fixed at a positive data scale
+$\beta_0 = 1/\mathrm{rms}(y)$ and $(\gamma, \delta)$ carry the fit. $\nu = 1$ by default, the usual Bouc–Wen choice
+(the $z$ equation is then piecewise linear in $z$, and $\nu$ trades off against $\beta$ over the range of $|z|$ the
+data visit); `--free-nu` wraps $\nu$ in `pj.Positive` and frees it (start 1) in a third stage.
+
+Simulation: `pj.BoucWenOscillator.simulate(u, dt, hold="periodic", method="rk4", substeps=S)`: classical RK4, $S$
+steps per sample in one `lax.scan`, with the input at the stage times from the band-limited periodic interpolant of
+the samples. The fit's predictor (`periodic_response`, a `fitting.Predictor`) drives the model from rest with the
+record's input repeated periodically, starting `warmup` samples before the record's first sample, and returns the
+record's samples. At the nominal parameters the RK4 response differs from adaptive diffrax Tsit5 (`rtol=1e-8`, the
+integrator of `--make-test`) on a steady multisine period by 2.7e-7 m RMS with 4 sub-steps and 7.3e-8 m with 8
+(about second order: the vector field has kinks at $\dot y = 0$ and $z = 0$), against 7.3e-6 m of data noise.
 
 Which samples (0-based, period $p$ = samples $8192p \dots 8192p + 8191$):
 
 - fit: periods 1–3 (samples 8192–32767). The input is periodic and the system is in its periodic steady state after
   period 0 (the transient from rest at sample 0 decays as $e^{-c t / 2m}$ and faster), so the least-squares cost over
   the three periods equals, up to a constant, three times the cost against their average $\bar y$; the fit uses
-  $\bar y$ (8192 residuals instead of 24576).
+  $\bar y$ (one `fitting.Experiment` of 8192 samples: `v_in` = the force period, `displacement` = $\bar y$).
 - validation: period 4 (samples 32768–40959), never used in the fit. It has the same input as the fitted periods and
   differs only by its noise, so its floor is the noise level; the synthetic sine sweep (`--make-test`) checks a
   different input.
@@ -37,48 +43,54 @@ frequency domain on the excited bins of $\bar y$ and $u$ ($\hat U = (k_\ell - m\
 derivatives of the band-limited interpolant); (2) the linear stiffness is split between $k$ and $\alpha$, the
 hysteresis scale $\beta_0\gamma$ is of the order $1/\mathrm{rms}(y)$ (where $\beta|z| \approx \alpha$, the loop
 bends), $\delta = 0$, and the viscous damping is a fraction of $c_\ell$ (the linear fit lumps the hysteretic
-dissipation into $c$): a grid of 3 × 3 × 2 such guesses is simulated and the one with the smallest stage-1 cost kept.
+dissipation into $c$): a grid of 3 × 3 × 2 such models is scored by the stage-1 `fitting.Problem`'s residuals and
+the one with the smallest cost is the start.
 
-Fit: optimistix Levenberg–Marquardt on the output (simulation) error, Jacobians by `jax.jacfwd`.
+Fit: `fitting.fit` (Levenberg–Marquardt in normal-equation form, forward-mode Jacobians, Jacobian-column scaling of
+the free parameters), output (simulation) error, in stages, each from the previous one's `params`:
 
-1. stage 1: RK4 with 4 sub-steps per sample, from rest 2048 samples before period 1, scored on its first 4096
-   samples (against $\bar y$);
-2. stage 2: RK4 with 8 sub-steps, from rest at sample 0 (one whole period of warm-up, as the data), scored on the
-   whole steady period against $\bar y$.
+1. stage 1: RK4 with 4 sub-steps, from rest 2048 samples before the period, the whole period scored against
+   $\bar y$;
+2. stage 2: RK4 with 8 sub-steps, from rest one whole period before (as the data: period 0 is the warm-up), the
+   whole steady period scored against $\bar y$;
+3. (`--free-nu`) stage 2 with $\nu$ free as well.
 
-`--quick` (tests): stage 1 from rest 1024 samples before period 1, scored on 2048; stage 2 with 4 sub-steps and at
-most 8 LM steps; the evaluation then also uses 4 sub-steps.
+`--quick` (tests): stage 1 from rest 1024 samples before the period; stage 2 with 4 sub-steps and at most 8 LM
+steps; the evaluation then also uses 4 sub-steps.
 
-Simulator: `piezojax._nonlinear.fixed_step` (classical RK4 in one `lax.scan`, the input at the stage times from the
-band-limited periodic interpolant of the multisine period; `periodic=False` zero-pads a transient record first).
-Checked against `pj.BoucWenOscillator.simulate(..., hold="periodic")` (diffrax Tsit5, adaptive) at the nominal
-parameters: on the first 3000 train samples (`rtol=1e-11`) max / RMS difference 1.6e-6 / 2.6e-7 m with 4 sub-steps,
-2.7e-7 / 6.1e-8 m with 8; on a steady synthetic multisine period (`rtol=1e-8`) 1.4e-6 / 2.7e-7 m (4), 5.9e-7 /
-7.3e-8 m (8), 1.3e-7 / 1.6e-8 m (16): about second order, because the vector field has kinks at $\dot y = 0$ and
-$z = 0$. The data noise is 7.3e-6 m RMS. One Jacobian (6 parameters, 16384 samples) takes 0.06 s with 4 sub-steps
-and 0.15 s with 8 (2-core CPU); most of the fit's time is compiling the optimistix solves (~10 s each).
+Measured (full run, synthetic test file of `--make-test` with its defaults): train / validation RMSE 7.4017e-6 /
+7.2892e-6 m (noise level 7.46e-6 m); test multisine 7.3061e-6 m, sine sweep 7.2202e-6 m (against the noise-free
+outputs: 2.66e-7 and 1.20e-7 m); $m, c, k, \alpha, \beta\gamma, \beta\delta$ within 0.4 % of the nominal values;
+stage 1 converges in 15 steps, stage 2 in 11; 10–15 s in all on a shared 2-core CPU. `--free-nu` moves $\nu$ to
+0.9989 and changes each RMSE by less than 0.02 %.
 
 `--test PATH` (HDF5, groups `multisine` and/or `sinesweep`, each with `u`, `y` and optionally `fs`):
 `multisine` is one steady-state period, simulated from rest for `--ms-periods` periods (default 3) and scored on the
-last; `sinesweep` is simulated from rest (zero-padded band-limited input). RMSE = $\sqrt{\mathrm{mean}((\hat y -
-y)^2)}$ in m, printed and saved as `{"multisine_rmse": .., "sinesweep_rmse": ..}` in `test_rmse.json` (null for a
-missing group). `--make-test PATH` writes a synthetic test file in that layout: a new random-phase multisine period
-(5–150 Hz, 50 N RMS) and a tapered 40 N linear sine sweep (5–150 Hz), simulated with the nominal benchmark
-parameters by diffrax (adaptive Tsit5, `rtol=1e-8`, a different integrator from the fit's), plus Gaussian noise; the
-noise-free outputs are stored as `y_clean`. The official files were made differently (the benchmark's MATLAB
-example: Newmark integration at 20 × 750 Hz, then FIR decimation of y), so scores on them also contain that
-difference; on `train.h5` it is below the noise (the nominal model leaves 7.36e-6 m against 7.46e-6 m noise).
+last; `sinesweep` is simulated from rest (band-limited interpolant of the record followed by `max(1024, n // 8)`
+zeros). RMSE = $\sqrt{\mathrm{mean}((\hat y - y)^2)}$ in m, printed and saved as `{"multisine_rmse": ..,
+"sinesweep_rmse": ..}` in `test_rmse.json` (null for a missing group). `--make-test PATH` writes a synthetic test
+file in that layout: a new random-phase multisine period (5–150 Hz, 50 N RMS) and a tapered 40 N linear sine sweep
+(5–150 Hz), simulated with the nominal benchmark parameters by diffrax (adaptive Tsit5, `rtol=1e-8`, a different
+integrator from the fit's), plus Gaussian noise; the noise-free outputs are stored as `y_clean`. The official files
+were made differently (the benchmark's MATLAB example: Newmark integration at 20 × 750 Hz, then FIR decimation of
+y), so scores on them also contain that difference; on `train.h5` it is below the noise (the nominal model leaves
+7.36e-6 m against 7.46e-6 m noise).
 
 Run: `python -m experiments.boucwen_benchmark [--test PATH] [--out results/boucwen_benchmark] [--quick]`.
 """
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
+
+import fitting
+import piezojax as pj
 
 DATA = Path(__file__).resolve().parent / "data" / "boucwen_benchmark" / "train.h5"
 PERIOD = 8192
@@ -86,6 +98,7 @@ FIT_PERIODS = (1, 2, 3)  # 0-based; samples 8192..32767
 VAL_PERIOD = 4  # samples 32768..40959
 NOMINAL = {"m": 2.0, "c": 10.0, "k": 5e4, "alpha": 5e4, "beta": 1e3, "gamma": 0.8, "delta": -1.1, "nu": 1.0}
 NOISE_DEFAULT = 7.3e-6  # m, the train data's noise level (RMS of half the period-to-period difference)
+FREE = ("m", "c", "k", "alpha", "gamma", "delta")  # beta fixed (identifiability), nu fixed unless --free-nu
 
 
 class BenchmarkFileError(ValueError):
@@ -205,99 +218,66 @@ def linear_fit(u: np.ndarray, y: np.ndarray, fs: float) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# JAX part (imported lazily so that `enable_fast_cpu_scans` runs before any JAX computation).
+# Model, predictor and fit (library blocks and `fitting` calls).
 
 
-def _jax():
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-    import optimistix as optx
-
-    import piezojax as pj
-
-    return eqx, jax, jnp, optx, pj
+def oscillator(m, c, k, alpha, beta, gamma, delta, nu=1.0):
+    """`pj.BoucWenOscillator` with $m, c, k, \\alpha$ constrained positive (`pj.Positive`), ready for `fitting`."""
+    bw = pj.BoucWenOscillator(m=m, c=c, k=k, alpha=alpha, beta=beta, gamma=gamma, delta=delta, nu=nu)
+    return pj.constrain(bw, lambda s: (s.m, s.c, s.k, s.alpha), pj.Positive)
 
 
-class Parametrisation:
-    r"""$\theta \mapsto$ `pj.BoucWenOscillator`: log-multipliers of $m, c, k, \alpha$ about a start, $\beta$ fixed at
-    `beta0`, $\gamma = \theta_4$, $\delta = \theta_5$, $\nu = e^{\theta_6}$ if `free_nu` else 1."""
+def periodic_response(substeps: int, warmup: int) -> fitting.Predictor:
+    """`displacement`: the model driven from rest by the record's input repeated periodically (the record is one
+    period), starting `warmup` samples before the record's first sample (`warmup` = the record's length: its
+    periodic steady state after one period from rest, as the benchmark data). RK4 with `substeps` steps per sample."""
 
-    def __init__(self, m0, c0, k0, a0, beta0, free_nu=False):
-        self.scale = np.array([m0, c0, k0, a0], dtype=np.float64)
-        self.beta0 = float(beta0)
-        self.free_nu = free_nu
+    def fn(model, data):
+        n = data.v_in.shape[0]
+        u = jnp.tile(jnp.roll(data.v_in, warmup % n), -(-(warmup + n) // n))
+        y = model.simulate(u, data.dt, hold="periodic", method="rk4", substeps=substeps, num_samples=warmup + n)
+        return {"displacement": y[warmup:]}
 
-    def model(self, theta):
-        eqx, jax, jnp, optx, pj = _jax()
-        pos = jnp.asarray(self.scale) * jnp.exp(theta[:4])
-        nu = jnp.exp(theta[6]) if self.free_nu else jnp.ones((), theta.dtype)
-        return pj.BoucWenOscillator(
-            m=pos[0], c=pos[1], k=pos[2], alpha=pos[3], beta=jnp.asarray(self.beta0, theta.dtype),
-            gamma=theta[4], delta=theta[5], nu=nu,
-        )
-
-    def values(self, theta) -> dict:
-        """Physical values as floats (with the identifiable products beta*gamma and beta*delta)."""
-        theta = np.asarray(theta, dtype=np.float64)
-        pos = self.scale * np.exp(theta[:4])
-        d = {"m": pos[0], "c": pos[1], "k": pos[2], "alpha": pos[3], "beta": self.beta0, "gamma": theta[4],
-             "delta": theta[5], "nu": float(np.exp(theta[6])) if self.free_nu else 1.0}
-        d["beta*gamma"] = self.beta0 * theta[4]
-        d["beta*delta"] = self.beta0 * theta[5]
-        return {k: float(v) for k, v in d.items()}
-
-    def with_free_nu(self, theta):
-        """The same model with nu free (start 1): a new parametrisation and theta."""
-        eqx, jax, jnp, optx, pj = _jax()
-        p = Parametrisation(*self.scale, self.beta0, free_nu=True)
-        th = jnp.concatenate([theta[:6], jnp.zeros(1, theta.dtype)])
-        return p, th
+    return fitting.Predictor(fn, ("displacement",))
 
 
-def _vector_field(x, u_t, model):
-    return model.vector_field(None, x, u_t)
+def values(model) -> dict:
+    """Physical values as floats, with the identifiable products beta*gamma and beta*delta."""
+    model = pj.unwrap(model)
+    d = {name: float(getattr(model, name)) for name in NOMINAL}
+    d["beta*gamma"] = d["beta"] * d["gamma"]
+    d["beta*delta"] = d["beta"] * d["delta"]
+    return d
 
 
-def simulate(model, table, dt, repeat=1, start=None):
-    """Displacement from rest over `repeat` passes of the stage-input table (optionally from row `start`)."""
-    eqx, jax, jnp, optx, pj = _jax()
-    from piezojax._nonlinear.fixed_step import rk4_scan
-
-    if start is not None:
-        table = table[start]
-    _, states = rk4_scan(_vector_field, jnp.zeros(3, table.dtype), table, dt, model, repeat=repeat)
-    return states[:, 0]
+def _rms(problem, u) -> float:
+    """RMS prediction error (m) of a problem's model at scaled parameters `u`."""
+    errors = problem.experiment_errors(problem.residuals(u))
+    return float(np.sqrt(np.mean(np.concatenate([e["displacement"] for e in errors]) ** 2)))
 
 
-def lm_fit(residuals, theta, max_steps, label, tol=1e-7):
-    """optimistix Levenberg–Marquardt (forward-mode Jacobians); prints the RMS residual before and after."""
-    eqx, jax, jnp, optx, pj = _jax()
-    res = jax.jit(residuals)
-    r0 = np.asarray(res(theta))
-    t0 = time.perf_counter()
-    solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
-    sol = optx.least_squares(lambda th, _: res(th), solver, theta, max_steps=max_steps, throw=False)
-    r1 = np.asarray(res(sol.value))
-    steps = int(sol.stats["num_steps"])
-    ok = bool(sol.result == optx.RESULTS.successful)
-    elapsed = time.perf_counter() - t0
-    print(
-        f"  [{label}] LM: RMS residual {np.sqrt(np.mean(r0**2)):.3e} -> {np.sqrt(np.mean(r1**2)):.3e} m in "
-        f"{steps} steps, {elapsed:.1f} s ({'converged' if ok else 'stopped at max_steps or failed'})",
-        flush=True,
-    )
-    return sol.value, {"lm_steps": steps, "converged": ok, "seconds": elapsed,
-                       "rms_before": float(np.sqrt(np.mean(r0**2))), "rms_after": float(np.sqrt(np.mean(r1**2)))}
+def fit_stage(params, dataset, predictor, free, max_steps, label) -> tuple:
+    """One `fitting.fit`; prints and returns the RMS error before and after, steps and verdict."""
+    result = fitting.fit(params, dataset, predictor=predictor, free=list(free), max_steps=max_steps, progress=False)
+    w = result.problem.weights["displacement"]
+    before = float(np.sqrt(2 * result.initial_cost / result.num_residuals)) / w
+    after = float(np.sqrt(2 * result.cost / result.num_residuals)) / w
+    print(f"  [{label}] fitting.fit: RMS error {before:.3e} -> {after:.3e} m in {result.steps} steps "
+          f"({result.accepted_steps} accepted), {result.seconds:.1f} s ({result.reason})", flush=True)
+    summary = result.summary()
+    info = {"steps": result.steps, "accepted_steps": result.accepted_steps, "success": result.success,
+            "reason": result.reason, "seconds": result.seconds, "rms_before": before, "rms_after": after,
+            "parameters": summary["parameters"], "condition": summary["condition"]}
+    return result, info
 
 
 def fit(data: dict, settings: dict) -> tuple:
-    """Linear start, grid of hysteresis guesses, LM stage 1 (short window) and stage 2 (whole period)."""
-    eqx, jax, jnp, optx, pj = _jax()
-    from piezojax._nonlinear.fixed_step import stage_inputs
+    """Linear start, grid of hysteresis guesses, then `fitting.fit` stage 1 (short warm-up, 4 sub-steps) and stage 2
+    (one period of warm-up, the evaluation's sub-steps); stage 3 frees nu with `settings["free_nu"]`.
 
+    **Returns:** `(result, info)`: the last stage's `fitting.FitResult` and a JSON-ready dict of what each step did.
+    """
     u, y, fs = data["u"], data["y"], data["fs"]
-    dt = 1.0 / fs
     u_period = u[:PERIOD]
     y_avg = np.mean([y[p * PERIOD : (p + 1) * PERIOD] for p in FIT_PERIODS], axis=0)
     info = {}
@@ -310,61 +290,44 @@ def fit(data: dict, settings: dict) -> tuple:
         flush=True,
     )
     m_l, c_l, k_l = abs(lin["m"]), abs(lin["c"]), abs(lin["k"])
-    y_rms = float(np.sqrt(np.mean(y_avg**2)))
-    beta0 = 1.0 / y_rms
-    par = Parametrisation(m_l, c_l, k_l / 2, k_l / 2, beta0)
+    beta0 = 1.0 / float(np.sqrt(np.mean(y_avg**2)))
+    dataset = fitting.Dataset([fitting.Experiment.from_arrays(
+        v_in=u_period, dt=1.0 / fs, displacement=y_avg, name="multisine (periods 1-3 averaged)")])
 
-    uj = jnp.asarray(u_period)
-    yj = jnp.asarray(y_avg)
-    # Stage 1: from rest `warm1` samples before the period start, scored on the first `win1` samples.
-    s1, warm1, win1 = settings["substeps1"], settings["warm1"], settings["win1"]
-    table1 = stage_inputs(uj, dt, s1)
-    rows1 = jnp.asarray(np.arange(-warm1, win1) % PERIOD)
-
-    def resid1(theta):
-        yhat = simulate(par.model(theta), table1, dt, start=rows1)[warm1:]
-        r = yhat - yj[:win1]
-        return jnp.where(jnp.isfinite(r), r, 1.0)
-
-    # Grid of physics-free guesses: split of the linear stiffness, hysteresis scale, viscous fraction.
-    cost1 = jax.jit(lambda th: jnp.sqrt(jnp.mean(resid1(th) ** 2)))
-    best = None
-    for split in (0.25, 0.5, 0.75):
-        for scale in (0.3, 1.0, 3.0):
-            for cfrac in (0.1, 0.5):
-                th = jnp.array([0.0, np.log(cfrac), np.log(2 * (1 - split)), np.log(2 * split), scale, 0.0])
-                cst = float(cost1(th))
-                if np.isfinite(cst) and (best is None or cst < best[0]):
-                    best = (cst, th, (split, scale, cfrac))
-    theta = best[1]
-    info["grid_best"] = {"alpha_fraction_of_k_lin": best[2][0], "beta_gamma_times_rms_y": best[2][1],
-                         "c_fraction_of_c_lin": best[2][2], "rms": best[0]}
+    # Grid of physics-free guesses (split of the linear stiffness, hysteresis scale, viscous fraction), scored by the
+    # stage-1 problem's residuals.
+    stage1 = periodic_response(settings["substeps1"], settings["warm1"])
+    grid = {
+        (split, scale, cfrac): oscillator(m_l, cfrac * c_l, (1 - split) * k_l, split * k_l, beta0, scale, 0.0)
+        for split in (0.25, 0.5, 0.75) for scale in (0.3, 1.0, 3.0) for cfrac in (0.1, 0.5)
+    }
+    problem = fitting.Problem(next(iter(grid.values())), dataset, predictor=stage1, free=list(FREE), scales="value")
+    costs = {key: _rms(problem, problem.u_of(model)) for key, model in grid.items()}
+    finite = {key: c for key, c in costs.items() if np.isfinite(c)}
+    if not finite:
+        raise RuntimeError("every start of the grid gives non-finite predictions")
+    best = min(finite, key=finite.get)
+    start = grid[best]
+    info["grid_best"] = {"alpha_fraction_of_k_lin": best[0], "beta_gamma_times_rms_y": best[1],
+                         "c_fraction_of_c_lin": best[2], "rms": costs[best]}
     print(
-        f"  start: alpha = {best[2][0]:.2f} k_lin, beta*gamma = {best[2][1]:.1f}/rms(y), c = {best[2][2]:.1f} c_lin, "
-        f"delta = 0; stage-1 RMS {best[0]:.3e} m ({time.perf_counter() - t0:.1f} s)",
+        f"  start: alpha = {best[0]:.2f} k_lin, beta*gamma = {best[1]:.1f}/rms(y), c = {best[2]:.1f} c_lin, "
+        f"delta = 0; stage-1 RMS {costs[best]:.3e} m ({time.perf_counter() - t0:.1f} s)",
         flush=True,
     )
-    info["start"] = par.values(theta)
-    theta, info["stage1"] = lm_fit(resid1, theta, settings["steps1"],
-                                   f"stage 1: RK4 x{s1}, warm-up {warm1}, window {win1}")
-
-    # Stage 2: from rest at sample 0, one period of warm-up, the whole steady period scored.
-    s2 = settings["substeps2"]
-    table2 = stage_inputs(uj, dt, s2)
-
-    def make_resid2(p):
-        def resid2(theta):
-            r = simulate(p.model(theta), table2, dt, repeat=2)[PERIOD:] - yj
-            return jnp.where(jnp.isfinite(r), r, 1.0)
-        return resid2
-
-    theta, info["stage2"] = lm_fit(make_resid2(par), theta, settings["steps2"],
-                                   f"stage 2: RK4 x{s2}, from rest at sample 0, period 1-3 average")
+    info["start"] = values(start)
+    s1, s2 = settings["substeps1"], settings["substeps2"]
+    result, info["stage1"] = fit_stage(start, dataset, stage1, FREE, settings["steps1"],
+                                       f"stage 1: RK4 x{s1}, warm-up {settings['warm1']}")
+    stage2 = periodic_response(s2, PERIOD)
+    result, info["stage2"] = fit_stage(result.params, dataset, stage2, FREE, settings["steps2"],
+                                       f"stage 2: RK4 x{s2}, from rest one period before, period 1-3 average")
     if settings["free_nu"]:
-        par, theta = par.with_free_nu(theta)
-        theta, info["stage3_free_nu"] = lm_fit(make_resid2(par), theta, settings["steps2"], "stage 3: nu free")
+        params = pj.constrain(result.params, lambda s: s.nu, pj.Positive)
+        result, info["stage3_free_nu"] = fit_stage(params, dataset, stage2, FREE + ("nu",), settings["steps2"],
+                                                   "stage 3: nu free")
     info["fit_seconds"] = time.perf_counter() - t0
-    return par, theta, table2, info
+    return result, info
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -375,14 +338,20 @@ def rmse(a, b) -> float:
     return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
 
 
+@eqx.filter_jit
+def _simulate(model, u, dt, substeps, num_samples):
+    return model.simulate(u, dt, hold="periodic", method="rk4", substeps=substeps, num_samples=num_samples)
+
+
+def simulate(model, u, fs, substeps, num_samples=None) -> np.ndarray:
+    """Displacement from rest under the band-limited periodic interpolant of `u` (RK4, `substeps` per sample)."""
+    u = np.asarray(u, dtype=np.float64)
+    return np.asarray(_simulate(pj.unwrap(model), jnp.asarray(u), 1.0 / fs, substeps, num_samples))
+
+
 def evaluate_train(model, data, substeps):
     """One simulation from rest through the 5 periods; RMSE on period 0, the fit periods and the validation period."""
-    eqx, jax, jnp, optx, pj = _jax()
-    from piezojax._nonlinear.fixed_step import stage_inputs
-
-    dt = 1.0 / data["fs"]
-    table = stage_inputs(jnp.asarray(data["u"][:PERIOD]), dt, substeps)
-    pred = np.asarray(jax.jit(simulate, static_argnums=(2, 3))(model, table, dt, 5))
+    pred = simulate(model, np.tile(data["u"][:PERIOD], 5), data["fs"], substeps)
     y = data["y"]
     fit_sl = slice(FIT_PERIODS[0] * PERIOD, (FIT_PERIODS[-1] + 1) * PERIOD)
     val_sl = slice(VAL_PERIOD * PERIOD, (VAL_PERIOD + 1) * PERIOD)
@@ -398,22 +367,17 @@ def evaluate_train(model, data, substeps):
 def simulate_multisine(model, u, fs, substeps, periods):
     """Steady-state response to a periodic input: `periods` periods from rest; the last one, and the RMS change
     from the one before (how far transients have died)."""
-    eqx, jax, jnp, optx, pj = _jax()
-    from piezojax._nonlinear.fixed_step import stage_inputs
-
     n = u.shape[0]
-    table = stage_inputs(jnp.asarray(u), 1.0 / fs, substeps)
-    y = np.asarray(jax.jit(simulate, static_argnums=(2, 3))(model, table, 1.0 / fs, periods))
+    y = simulate(model, np.tile(u, periods), fs, substeps)
     return y[-n:], rmse(y[-n:], y[-2 * n : -n]) if periods > 1 else float("nan")
 
 
 def simulate_transient(model, u, fs, substeps):
-    """Response from rest to a non-periodic record (band-limited interpolant of the zero-padded samples)."""
-    eqx, jax, jnp, optx, pj = _jax()
-    from piezojax._nonlinear.fixed_step import stage_inputs
-
-    table = stage_inputs(jnp.asarray(u), 1.0 / fs, substeps, periodic=False)
-    return np.asarray(jax.jit(simulate, static_argnums=(2, 3))(model, table, 1.0 / fs, 1))
+    """Response from rest to a non-periodic record (band-limited interpolant of the record followed by
+    `max(1024, n // 8)` zeros, so that its end does not wrap onto its start)."""
+    n = u.shape[0]
+    padded = np.concatenate([u, np.zeros(max(1024, n // 8))])
+    return simulate(model, padded, fs, substeps, num_samples=n)
 
 
 def evaluate_test(model, test, fs_default, substeps, ms_periods):
@@ -473,9 +437,6 @@ def make_synthetic_test(path, *, fs=750.0, sweep_samples=20000, noise=NOISE_DEFA
     """
     import h5py
 
-    eqx, jax, jnp, optx, pj = _jax()
-    from fitting._io import atomic_file
-
     t0 = time.perf_counter()
     dt = 1.0 / fs
     bw = pj.BoucWenOscillator(**NOMINAL)
@@ -488,7 +449,7 @@ def make_synthetic_test(path, *, fs=750.0, sweep_samples=20000, noise=NOISE_DEFA
     pad = max(1024, sweep_samples // 8)  # the same zero padding as the scoring simulator's default
     u_pad = jnp.asarray(np.concatenate([u_sw, np.zeros(pad)]))
     y_sw = np.asarray(bw.simulate(u_pad, dt, hold="periodic", rtol=rtol, num_samples=sweep_samples))
-    with atomic_file(path) as tmp, h5py.File(tmp, "w") as f:
+    with fitting.atomic_file(path) as tmp, h5py.File(tmp, "w") as f:
         for name, uu, yy in (("multisine", u_ms, y_ms), ("sinesweep", u_sw, y_sw)):
             g = f.create_group(name)
             g["u"] = uu[:, None]
@@ -510,8 +471,6 @@ def save_figure(path, data, pred, test=None, test_preds=None):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from fitting._io import atomic_file
 
     fs = data["fs"]
     sl = slice(VAL_PERIOD * PERIOD, (VAL_PERIOD + 1) * PERIOD)
@@ -538,15 +497,13 @@ def save_figure(path, data, pred, test=None, test_preds=None):
             i += 1
         axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
-    with atomic_file(path) as tmp:
+    with fitting.atomic_file(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
 
 
 def write_json(path, obj):
-    from fitting._io import atomic_write_bytes
-
-    atomic_write_bytes(path, (json.dumps(obj, indent=2) + "\n").encode())
+    fitting.save_json(path, obj)  # strict JSON (NaN and inf as null), atomic
 
 
 def format_parameters(start: dict, fitted: dict) -> str:
@@ -578,11 +535,7 @@ def main(argv=None):
     if args.ms_periods < 2:
         raise SystemExit("error: --ms-periods must be at least 2")
 
-    import piezojax as pj
-
     pj.enable_fast_cpu_scans()
-    import jax
-
     jax.config.update("jax_enable_x64", True)
     start = time.perf_counter()
 
@@ -599,17 +552,17 @@ def main(argv=None):
         raise SystemExit(f"error: {e}") from None
 
     if args.quick:
-        settings = {"substeps1": 4, "warm1": 1024, "win1": 2048, "steps1": 60, "substeps2": 4, "steps2": 8}
+        settings = {"substeps1": 4, "warm1": 1024, "steps1": 60, "substeps2": 4, "steps2": 8}
     else:
-        settings = {"substeps1": 4, "warm1": 2048, "win1": 4096, "steps1": 60, "substeps2": 8, "steps2": 40}
+        settings = {"substeps1": 4, "warm1": 2048, "steps1": 60, "substeps2": 8, "steps2": 40}
     settings["free_nu"] = bool(args.free_nu)
     noise = noise_level(data["y"])
     print(f"train.h5: {data['u'].shape[0]} samples at {data['fs']:.0f} Hz; noise level {noise:.3e} m "
           f"(periods 2 vs 3); settings {settings}", flush=True)
 
-    par, theta, _, info = fit(data, settings)
-    fitted = par.values(theta)
-    model = par.model(jax.numpy.asarray(theta))
+    result, info = fit(data, settings)
+    model = result.model
+    fitted = values(model)
     pred, metrics = evaluate_train(model, data, settings["substeps2"])
     metrics["noise_level"] = noise
     print(f"\ntrain RMSE (samples {metrics['train_samples']}): {metrics['train_rmse']:.4e} m")

@@ -1,16 +1,15 @@
-"""`python -m experiments.boucwen_benchmark --quick --test FILE` end to end, and its fixed-step RK4 simulator."""
+"""`python -m experiments.boucwen_benchmark --quick --test FILE` end to end, and its fitting problem."""
 
 import json
 
 import h5py
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import fitting
 import piezojax as pj
 from experiments import boucwen_benchmark as exp
-from piezojax._nonlinear.fixed_step import rk4_scan, stage_inputs
 
 FS = 750.0
 DT = 1 / FS
@@ -19,78 +18,42 @@ needs_data = pytest.mark.skipif(not exp.DATA.exists(), reason=f"benchmark data n
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# The simulator.
-
-
-def test_stage_inputs_band_limited():
-    """Column 0 holds the samples, the last column the next sample (wrapping), and a sine with a whole number of
-    periods in the record is interpolated exactly at the half-step times."""
-    n, s = 64, 3
-    t = np.arange(n) * DT
-    f = 5 * FS / n
-    u = np.sin(2 * np.pi * f * t + 0.3)
-    tab = np.asarray(stage_inputs(jnp.asarray(u), DT, s))
-    assert tab.shape == (n, 2 * s + 1)
-    np.testing.assert_allclose(tab[:, 0], u, atol=1e-12)
-    np.testing.assert_allclose(tab[:, -1], np.roll(u, -1), atol=1e-12)
-    tt = t[:, None] + np.arange(2 * s + 1)[None, :] * DT / (2 * s)
-    np.testing.assert_allclose(tab, np.sin(2 * np.pi * f * tt + 0.3), atol=1e-12)
-    # transient record: zero padding, so the last sample's end point is u = 0 (the first pad sample)
-    tab2 = np.asarray(stage_inputs(jnp.asarray(u), DT, s, periodic=False, pad=8))
-    assert tab2.shape == (n, 2 * s + 1)
-    assert tab2[-1, -1] == pytest.approx(0.0, abs=1e-12)
-    with pytest.raises(ValueError, match="substeps"):
-        stage_inputs(jnp.asarray(u), DT, 0)
-    with pytest.raises(ValueError, match="`u`"):
-        stage_inputs(jnp.zeros((4, 2)), DT, 2)
-
-
-def test_rk4_fourth_order_on_linear_ode():
-    r"""$\dot x = -a x + u$, $u = \sin\omega t$ from rest: exact solution known; RK4 error falls 16x per halving."""
-    n, a = 200, 30.0
-    w = 2 * np.pi * 10 * FS / n  # 10 periods in the record: the band-limited input is exact
-    t = np.arange(n) * DT
-    u = np.sin(w * t)
-    exact = (a * np.sin(w * t) - w * np.cos(w * t) + w * np.exp(-a * t)) / (a * a + w * w)
-    errs = []
-    for s in (1, 2, 4):
-        _, xs = rk4_scan(lambda x, u_t, _: -a * x + u_t, jnp.zeros(1), stage_inputs(jnp.asarray(u), DT, s), DT)
-        errs.append(np.max(np.abs(np.asarray(xs[:, 0]) - exact)))
-    assert errs[2] < 1e-7 * np.max(np.abs(exact))
-    assert 12 < errs[0] / errs[1] < 20 and 12 < errs[1] / errs[2] < 20, errs
-    # jit / grad / jacfwd / vmap: d/da of the final state, three ways, and a batch of two inputs
-    table = stage_inputs(jnp.asarray(u), DT, 2)
-
-    def final(a_):
-        return rk4_scan(lambda x, u_t, aa: -aa * x + u_t, jnp.zeros(1), table, DT, a_)[0][0]
-
-    g = jax.grad(final)(a)
-    assert float(jax.jit(jax.jacfwd(final))(a)) == pytest.approx(float(g), rel=1e-10)
-    fd = (float(final(a + 1e-4)) - float(final(a - 1e-4))) / 2e-4
-    assert float(g) == pytest.approx(fd, rel=1e-6)
-    tables = jnp.stack([table, 2 * table])
-    batch = jax.vmap(lambda tb: rk4_scan(lambda x, u_t, _: -a * x + u_t, jnp.zeros(1), tb, DT)[1])(tables)
-    np.testing.assert_allclose(np.asarray(batch[1]), 2 * np.asarray(batch[0]), rtol=1e-12, atol=1e-18)
+# The fitting problem (the simulator itself, `BoucWenOscillator.simulate(method="rk4")`, is tested with the model).
 
 
 @needs_data
-def test_jacobian_matches_finite_differences():
-    """jacfwd through the RK4 scan (what LM uses) against central differences, on 300 samples."""
+def test_problem_jacobian_matches_finite_differences():
+    """The Jacobian the fit uses (forward mode through the predictor, `pj.Positive` and RK4) against central
+    differences of the residuals, in the problem's scaled parameters, on 300 samples with 2 sub-steps."""
     d = exp.load_train()
-    table = stage_inputs(jnp.asarray(d["u"][: exp.PERIOD]), DT, 2)[:300]
-    par = exp.Parametrisation(1.8, 40.0, 5.5e4, 5.5e4, 1500.0)
-
-    def f(th):
-        return exp.simulate(par.model(th), table, DT)
-
-    th = jnp.array([0.05, 0.1, -0.05, 0.02, 0.4, -0.3])
-    jac = np.asarray(jax.jit(jax.jacfwd(f))(th))
-    fj = jax.jit(f)
+    data = fitting.Dataset([fitting.Experiment.from_arrays(v_in=d["u"][:300], dt=DT, displacement=d["y"][:300])])
+    model = exp.oscillator(1.8, 40.0, 5.5e4, 5.5e4, 1500.0, 0.4, -0.3)
+    problem = fitting.Problem(model, data, predictor=exp.periodic_response(2, 100), free=list(exp.FREE),
+                              scales="value")
+    assert problem.parameter_names() == list(exp.FREE)
+    u = problem.u0 * jnp.array([1.02, 1.1, 0.98, 1.01, 1.3, 0.8])
+    jac = np.asarray(problem.jacobian_t(u)).T
     eps = 1e-6
-    for i in range(th.shape[0]):
-        e = jnp.zeros(6).at[i].set(eps)
-        fd = (np.asarray(fj(th + e)) - np.asarray(fj(th - e))) / (2 * eps)
+    for i in range(u.shape[0]):
+        e = jnp.zeros(u.shape[0]).at[i].set(eps)
+        fd = (np.asarray(problem.residuals(u + e)) - np.asarray(problem.residuals(u - e))) / (2 * eps)
         np.testing.assert_allclose(jac[:, i], fd, rtol=1e-4, atol=1e-6 * np.max(np.abs(fd)))
+
+
+def test_periodic_response_warmup():
+    """The predictor's warm-up: the periodic input from rest `warmup` samples before the record's first sample,
+    i.e. samples -warmup..-1 (of the periodic continuation) drive the model first; only the record is returned."""
+    n = 200
+    t = np.arange(n) * DT
+    u = 30 * np.sin(2 * np.pi * 3 * FS / n * t) + 20 * np.cos(2 * np.pi * 11 * FS / n * t)
+    bw = pj.BoucWenOscillator(**exp.NOMINAL)
+    data = fitting.ExperimentArrays(t=jnp.asarray(t), dt=jnp.asarray(DT), v_in=jnp.asarray(u), channels={})
+    scale = np.abs(exp.simulate(bw, u, FS, 2)).max()
+    for warmup in (0, n, 2 * n, 50):
+        shifted = np.concatenate([u[n - warmup % n :], u[: n - warmup % n]])  # starts at sample -warmup
+        ref = exp.simulate(bw, np.tile(shifted, 3), FS, 2)[warmup : warmup + n]
+        y = np.asarray(exp.periodic_response(2, warmup)(bw, data)["displacement"])
+        np.testing.assert_allclose(y, ref, rtol=0, atol=1e-12 * scale, err_msg=f"warmup {warmup}")
 
 
 # ---------------------------------------------------------------------------------------------------------------

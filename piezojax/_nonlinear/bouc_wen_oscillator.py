@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import PiezojaxValueError, check_scalar, check_value, common_float_dtype
 from .._custom_types import Signal, SignalLike
 from ._input import check_samples, check_step, simulate_ode
+from .fixed_step import rk4_scan, stage_inputs
 
 
 def safe_abs_pow(x: Array, p: Array) -> Array:
@@ -23,6 +24,11 @@ def safe_abs_pow(x: Array, p: Array) -> Array:
 
 
 _NAMES = ("m", "c", "k", "alpha", "beta", "gamma", "delta", "nu")
+_METHODS = ("tsit5", "rk4")
+
+
+def _rk4_field(state, u_t, model):
+    return model.vector_field(None, state, u_t)
 
 
 class BoucWenOscillator(eqx.Module):
@@ -52,9 +58,18 @@ class BoucWenOscillator(eqx.Module):
     (`jax.grad`) is not supported. $|z|^{\nu}$ uses a safe power, so derivatives are finite at $z = 0$. For
     finite-difference checks of derivatives use fixed steps (adaptive step selection moves with the parameters).
 
+    `method="rk4"` (for fitting, where the simulation runs once per Jacobian): classical RK4 with `substeps` fixed
+    steps per sample in one `lax.scan`, the band-limited input evaluated exactly at every stage time (one FFT before
+    the scan, no interpolation inside it); `hold="periodic"` only. Its error also falls at about second order (RMS
+    difference from adaptive Tsit5 on a steady benchmark multisine period: below 4e-7 m with 4 sub-steps, 1.2e-7 m
+    with 8, tested). It works under `jax.jacfwd`, `jax.grad` and `jax.vmap`; call
+    `piezojax.enable_fast_cpu_scans()` first on CPU (the Jacobian's scan body is over 1 KiB).
+
     **Fitting.** In SI units the parameters span 1 to 5e4, so Jacobian columns differ by orders of magnitude. Fit
     log-multipliers of the positive parameters and the O(1) exponents directly, e.g.
-    `eqx.tree_at(lambda s: (s.k, s.alpha), model, (5e4 * jnp.exp(th[0]), 5e4 * jnp.exp(th[1])))`.
+    `eqx.tree_at(lambda s: (s.k, s.alpha), model, (5e4 * jnp.exp(th[0]), 5e4 * jnp.exp(th[1])))`, or scale the
+    Jacobian's columns. $\beta$ enters only through the products $\beta\gamma$ and $\beta\delta$, so
+    $(\beta, \gamma, \delta)$ is not identifiable: hold $\beta$ fixed and fit $\gamma$ and $\delta$ (signed).
 
     **Stability.** With $A = \alpha$, $\beta_{BW} = \beta\gamma$ and $\gamma_{BW} = \beta\delta$ the hysteretic
     equation is `BoucWen`'s, in the displacement $y$. `BoucWen` rejects parameters for which $z$ is unbounded; for
@@ -72,6 +87,7 @@ class BoucWenOscillator(eqx.Module):
     ```python
     bw = BoucWenOscillator()  # benchmark nominal parameters
     y = bw.simulate(u, 1 / 750, hold="periodic")  # displacement at the sample times
+    y_fast = bw.simulate(u, 1 / 750, hold="periodic", method="rk4", substeps=8)  # fixed-step RK4
     ```
     """
 
@@ -121,6 +137,7 @@ class BoucWenOscillator(eqx.Module):
         hold: str = "linear",
         substeps: int = 4,
         rtol: float | None = 1e-8,
+        method: str = "tsit5",
         num_samples: int | None = None,
         state0: ArrayLike | None = None,
         return_state: bool = False,
@@ -133,13 +150,24 @@ class BoucWenOscillator(eqx.Module):
         - `dt`: sample period (s, > 0).
         - `hold`: `"linear"` (default), `"zoh"`, or `"periodic"` (band-limited; `u` is one period).
         - `rtol`: relative (and absolute) tolerance of the adaptive steps on the scaled states; `None`: fixed steps.
-        - `substeps`: fixed Tsit5 steps per sample when `rtol=None` (else the first step is `dt / substeps`).
+          Not used with `method="rk4"`.
+        - `substeps`: fixed steps per sample (Tsit5 when `rtol=None`, RK4 with `method="rk4"`); else the first
+          adaptive step is `dt / substeps`.
+        - `method`: `"tsit5"` (default: diffrax, adaptive or fixed steps as above) or `"rk4"` (fixed-step classical
+          RK4 in one `lax.scan`, with the band-limited input at the stage times; needs `hold="periodic"`).
         - `num_samples`: number of output samples (default `len(u)`).
         - `state0`: initial $(y, \dot y, z)$ at $t_0$ (default rest).
         - `return_state`: also return the states, shape `(time, 3)`.
 
         **Returns:** displacement, shape `(num_samples,)` (and the states if `return_state`).
         """
+        if method not in _METHODS:
+            raise PiezojaxValueError(f"`method` must be one of {_METHODS}, got {method!r}")
+        if method == "rk4" and hold != "periodic":
+            raise PiezojaxValueError(
+                f'`method="rk4"` needs `hold="periodic"` (its stage inputs are the band-limited interpolant), got '
+                f"hold={hold!r}"
+            )
         u = check_samples(u, "u")
         if u.ndim != 1:
             raise PiezojaxValueError(f"`u` must be 1-D of shape (time,), got shape {tuple(u.shape)}")
@@ -153,6 +181,20 @@ class BoucWenOscillator(eqx.Module):
             state0 = jnp.asarray(state0, dtype)
             if state0.shape != (3,):
                 raise PiezojaxValueError(f"`state0` must have shape (3,), got {tuple(state0.shape)}")
+        if method == "rk4":
+            n = u.shape[0]
+            if num_samples is None:
+                num_samples = n
+            if isinstance(num_samples, bool) or not isinstance(num_samples, int) or not 1 <= num_samples <= n:
+                raise PiezojaxValueError(
+                    f"`num_samples` must be an int in [1, len(u)] = [1, {n}], got {num_samples!r}"
+                )
+            # Fixed steps are invariant under the state scaling below: the physical states are integrated.
+            table = stage_inputs(u, dt, substeps)[:num_samples]
+            _, states = rk4_scan(_rk4_field, state0, table, dt, model)
+            if return_state:
+                return states[:, 0], states
+            return states[:, 0]
         # State scales: they only change what the adaptive controller calls small, not the solution.
         f_scale = jax.lax.stop_gradient(jnp.max(jnp.abs(u))) + jnp.asarray(1e-30, dtype)
         stiff = jax.lax.stop_gradient(jnp.abs(model.k) + jnp.abs(model.alpha)) + jnp.asarray(1e-30, dtype)
