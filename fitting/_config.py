@@ -95,7 +95,7 @@ class ModelConfig:
       `"transfer_function"`, order 0 when the file has no `[dynamics]`), with their validated options in
       `hysteresis_options`, `creep_options`, `dynamics_options` (see `fitting.BlockKind`).
     - `model`: `"actuator"` (`pj.Actuator`) or the observer kind of `[observer]`; `model_options` its options
-      (the actuator's: `charge`, the `[charge]` options or `None`, and `state`, the `[state]` options).
+      (the actuator's: `charge`, the `[charge]` options or `None`; both: `state`, the `[state]` options).
     - `free`, `weights`, `smoothing`, `max_steps`, `targets`, `method`: the `[fit]` options (`free=None`: the default
       set of `default_free`; `method`: `fitting.solve`'s, default `"levenberg_marquardt"`).
     - `data`: the `[data]` options for reading the files — `units`, `columns`, `group`, `sample_rate`,
@@ -153,8 +153,8 @@ class ModelConfig:
 
     @property
     def state(self) -> dict:
-        """The actuator's `[state]` options."""
-        return {} if self.is_observer else self.model_options.get("state", {})
+        """The `[state]` options (`offset`, `prehistory`)."""
+        return self.model_options.get("state", {})
 
     @property
     def dynamics_order(self) -> int:
@@ -432,7 +432,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         kinds[table], opts[table] = name, o
     h_kind = kinds["hysteresis"]
     model_options = mkind.parse(mt, raw, source)
-    if mkind.table is None and kinds["creep"] == "none" and h_kind == "none" and opts["dynamics"]["order"] == 0:
+    if mkind.table is None and kinds["creep"] == "none" and h_kind == "none" and opts["dynamics"].get("order", 0) == 0:
         raise PiezojaxValueError(f"{source}: every block is 'none': the model has no parameters")
     outputs_of = ModelConfig(text="", source=source, hysteresis=h_kind, hysteresis_options=opts["hysteresis"],
                              creep=kinds["creep"], creep_options=opts["creep"], dynamics=kinds["dynamics"],

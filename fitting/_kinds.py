@@ -356,20 +356,28 @@ class BlockKind:
         """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
         return 1
 
+    def optional_start(self, o: dict, data: StartData) -> dict:
+        """Values for the parameters a forward simulation does not need, when only those are missing (default:
+        `start`; kinds whose `start` needs more data than these override it)."""
+        return self.start(o, data)
+
     def values(self, o: dict, data: StartData | None) -> dict:
-        """Explicit values where the file gives them, the rest from the cold start, `start` or `placeholder`."""
+        """Explicit values where the file gives them, the rest from the cold start, `start` (`optional_start` when
+        only optional parameters are missing) or `placeholder` (no data)."""
         names = self.parameters(o)
         out = {k: o.get(k) for k in names}
         if any(x is None for x in out.values()):
             made = None
-            if data is not None:
+            if data is None:
+                made = self.placeholder(o)
+            elif all(o.get(k) is not None for k in self.required(o)):
+                made = self.optional_start(o, data)
+            else:
                 cold = data.cold_start()
                 if cold is not None:
                     made = self.from_cold_start(o, getattr(cold, self.table))
                 if made is None:
                     made = self.start(o, data)
-            else:
-                made = self.placeholder(o)
             out = {k: (made[k] if out[k] is None else out[k]) for k in names}
         return out
 
@@ -514,6 +522,9 @@ class BoucWenKind(BlockKind):
         z = np.concatenate([np.asarray(bw(jnp.asarray(vv))) for vv, _, _ in recs])
         d = float(np.dot(v, y + z) / np.dot(v, v))
         return {"A": A, "beta": beta, "gamma": beta, "n": 1.0, "d": d}
+
+    def optional_start(self, o, data):
+        return self.placeholder(o)  # n = 1, the usual Bouc–Wen choice
 
     def build(self, o, v, config):
         return pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(v["n"]), f64(v["d"]),
@@ -697,6 +708,9 @@ class LogarithmicKind(BlockKind):
     def start(self, o, data):
         return {"gamma": 0.01, "t0": 10 * data.dt(), "gain": _creep_gain(data)}
 
+    def optional_start(self, o, data):
+        return self.placeholder(o) | {"gain": _creep_gain(data)}
+
     def build(self, o, v, config):
         return pj.LogarithmicCreep(f64(v["gamma"]), f64(v["t0"]), gain=f64(v["gain"]),
                                    instantaneous=config.creep_structure == "series")
@@ -753,7 +767,8 @@ class TransferFunctionKind(BlockKind):
     (`omega`, `zeta`) and `order % 2` real (`poles`); `zero_pairs` (≤ the pole pairs) complex zero pairs
     (`zero_omega`, `zero_zeta`: a mode with an antiresonance, e.g. a low-frequency mode of the mount) and
     `real_zeros` (`zeros`); `gain` (DC gain, default 1). Zero pair $i$ starts at 1.25 $\omega_i$ with $\zeta_i$
-    (near the pole pair, so the mode starts weak), a real zero at 1.25 times its pole."""
+    (near the pole pair, so the mode starts weak), real zero $j$ at 1.25 times real pole $j$, further real zeros
+    spread from 1.25 to 5 times the fastest pole (distinct, so that they can part)."""
 
     table, name = "dynamics", "transfer_function"
     keys = ("order", "gain", "omega", "zeta", "poles", "zero_pairs", "zero_omega", "zero_zeta", "real_zeros", "zeros")
@@ -785,9 +800,12 @@ class TransferFunctionKind(BlockKind):
 
     def _zeros(self, o, omega, zeta, poles) -> dict:
         m2, m1 = o["zero_pairs"], o["real_zeros"]
-        fast = np.concatenate([1.25 * np.asarray(poles), -1.25 * np.asarray(omega)])
+        # real zeros at 1.25 times the real poles, then spread (distinct, so that they can part) above the pairs
+        near = 1.25 * np.asarray(poles)[:m1]
+        top = max([1.0] + [abs(float(x)) for x in np.r_[np.asarray(poles), np.asarray(omega)]])
+        extra = -1.25 * top * np.geomspace(1.0, 4.0, max(m1 - near.size, 1))[: m1 - near.size]
         return {"zero_omega": 1.25 * np.asarray(omega)[:m2], "zero_zeta": np.asarray(zeta)[:m2],
-                "zeros": (fast[:m1] if fast.size >= m1 else np.full(m1, -1.0))}
+                "zeros": np.concatenate([near, extra])}
 
     def placeholder(self, o):
         n2, n1 = divmod(o["order"], 2)
@@ -804,6 +822,9 @@ class TransferFunctionKind(BlockKind):
                "poles": -2 * np.pi * 0.2 * nyquist * np.geomspace(1.0, 3.0, n1) if n1 else np.zeros(0),
                "gain": data.static_gain() if data.unit_drive else 1.0}
         return out | self._zeros(o, _given(o, "omega", out), _given(o, "zeta", out), _given(o, "poles", out))
+
+    def optional_start(self, o, data):
+        return self.placeholder(o) | {"gain": data.static_gain() if data.unit_drive else 1.0}
 
     def from_cold_start(self, o, block):
         # only all-pole even orders are in the cold start's family (`cold_start_args`)

@@ -105,14 +105,105 @@ def get_model_kind(name: str) -> ModelKind:
     return _MODEL_KINDS[name] if name != ActuatorModel.name else ACTUATOR
 
 
-# ---------------------------------------------------------------------------------------------- the actuator
+# ---------------------------------------------------------------------------------------------- state
 
 
 _STATE_KEYS = ("offset", "prehistory")
+
+
+def parse_state(raw: Mapping, source: str) -> dict:
+    """The `[state]` table: `offset` and `prehistory`, each `True` (in the model, started from the data), `False`
+    (not in the model) or a number (in the model, this start value)."""
+    out: dict = {}
+    if "state" not in raw:
+        return out
+    st = ConfigTable(source, "state", raw["state"], _STATE_KEYS)
+    if "kind" in st.data:
+        raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(_STATE_KEYS)}", "kind")
+    for key in _STATE_KEYS:
+        if key not in st.data:
+            continue
+        value = st.data[key]
+        if not (isinstance(value, bool) or finite_number(value)):
+            raise st.error(f"must be true (fitted from the data), false (none) or a number (its start value), got "
+                           f"{value!r}", key)
+        out[key] = value if isinstance(value, bool) else float(value)
+    h = raw.get("hysteresis", {})
+    if out.get("prehistory", False) is not False and h.get("kind", "none") == "none":
+        raise st.error("a prehistory sets the hysteresis' remanent state; the model has no hysteresis", "prehistory")
+    return out
+
+
+class _WithState(ModelKind):
+    """A model with an output `offset` and a hysteresis `prehistory` (`[state]`), both fields of the model."""
+
+    offset_default: ClassVar[bool] = True
+
+    def offset(self, config):
+        return config.model_options["state"].get("offset", self.offset_default)
+
+    def prehistory(self, config):
+        return config.model_options["state"].get("prehistory", False)
+
+    def state_values(self, config) -> dict:
+        """The model's `offset` and `prehistory` arguments (a start of 0 where the data will set them)."""
+        offset, pre = self.offset(config), self.prehistory(config)
+        return {"offset": f64(0.0 if isinstance(offset, bool) else offset),
+                "prehistory": None if pre is False else f64(0.0 if pre is True else pre)}
+
+    def missing(self, config):
+        return ["[state] prehistory"] if self.prehistory(config) is True else []
+
+    def state_free(self, config) -> tuple[str, ...]:
+        return (("offset",) if self.offset(config) is not False else ()) + (
+            ("prehistory",) if self.prehistory(config) is not False else ())
+
+    def displacement(self, model, experiment) -> np.ndarray:
+        """The model's displacement for one experiment (for the starts of the state)."""
+        raise NotImplementedError
+
+    def start_state(self, config, model, dataset):
+        """The offset (the mean residual of the displacement) and the prehistory (the best of a grid of excursions
+        from -max|v| to max|v|, each with its offset), where the file gives no number."""
+        offset, pre = self.offset(config), self.prehistory(config)
+        if offset is not True and pre is not True:
+            return model
+        recs = [e for e in dataset if e.has("displacement") and all(e.has(c) for c in self.inputs(config))]
+        if not recs:
+            return model
+
+        def with_offset(m):
+            if offset is not True:
+                return m
+            res = np.concatenate([np.asarray(e["displacement"]) - self.displacement(m, e) for e in recs])
+            b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
+            return eqx.tree_at(lambda a: a.offset, m, jnp.asarray(b + float(m.offset), m.offset.dtype))
+
+        def error(m) -> float:
+            total = sum(float(np.sum(((self.displacement(m, e) - np.asarray(e["displacement"]))
+                                      / max(float(np.ptp(e["displacement"])), np.finfo(float).tiny)) ** 2))
+                        for e in recs)
+            return total if np.isfinite(total) else np.inf
+
+        if pre is not True:
+            return with_offset(model)
+        vmax = max(float(np.max(np.abs(e.v_in))) for e in recs)
+        best, best_err = None, np.inf
+        for u in vmax * np.linspace(-1.0, 1.0, 9):
+            cand = with_offset(eqx.tree_at(lambda a: a.prehistory, model, jnp.asarray(u, model.prehistory.dtype)))
+            err = error(cand)
+            if best is None or err < best_err:
+                best, best_err = cand, err
+        return best
+
+
+# ---------------------------------------------------------------------------------------------- the actuator
+
+
 _CHARGE_KEYS = ("capacitance", "coupling")
 
 
-class ActuatorModel(ModelKind):
+class ActuatorModel(_WithState):
     r"""`pj.Actuator`: the blocks, `[charge]` ($q = C_p V + T\delta$: `capacitance`, `coupling`) and `[state]`
     (`offset`, `prehistory`: `true` fitted from a data-driven start, `false` absent, or a number, the start)."""
 
@@ -122,36 +213,12 @@ class ActuatorModel(ModelKind):
     cold_start = True
 
     def parse(self, t, raw, source):
-        out: dict = {"charge": None, "state": {}}
+        out: dict = {"charge": None, "state": parse_state(raw, source)}
         if "charge" in raw:
             cht = ConfigTable(source, "charge", raw["charge"], _CHARGE_KEYS)
             out["charge"] = {"capacitance": cht.number("capacitance", None, nonnegative=True),
                              "coupling": cht.number("coupling", None)}
-        if "state" in raw:
-            st = ConfigTable(source, "state", raw["state"], _STATE_KEYS)
-            if "kind" in st.data:
-                raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(_STATE_KEYS)}", "kind")
-            for key in _STATE_KEYS:
-                if key not in st.data:
-                    continue
-                value = st.data[key]
-                if not (isinstance(value, bool) or finite_number(value)):
-                    raise st.error(f"must be true (fitted from the data), false (none) or a number (its start "
-                                   f"value), got {value!r}", key)
-                out["state"][key] = value if isinstance(value, bool) else float(value)
-            h = raw.get("hysteresis", {})
-            if out["state"].get("prehistory", False) is not False and h.get("kind", "none") == "none":
-                raise st.error("a prehistory sets the hysteresis' remanent state; the model has no hysteresis",
-                               "prehistory")
         return out
-
-    @staticmethod
-    def offset(config):
-        return config.model_options["state"].get("offset", True)
-
-    @staticmethod
-    def prehistory(config):
-        return config.model_options["state"].get("prehistory", False)
 
     def outputs(self, config):
         return ("displacement", "charge", "current") if config.charge is not None else ("displacement",)
@@ -169,23 +236,24 @@ class ActuatorModel(ModelKind):
         return recs
 
     def missing(self, config):
-        return ["[state] prehistory"] if self.prehistory(config) is True else []
+        charge = config.charge or {}
+        return [f"[charge] {k}" for k in _CHARGE_KEYS if config.charge is not None and charge.get(k) is None] + (
+            super().missing(config))
 
     def build(self, config, blocks, data):
         cap = coup = 0.0
         if config.charge is not None:
             cap, coup = self._charge(config, data)
-        offset, pre = self.offset(config), self.prehistory(config)
-        offset = 0.0 if isinstance(offset, bool) else offset
-        pre = None if pre is False else (0.0 if pre is True else pre)
         return pj.Actuator(blocks["hysteresis"], blocks["creep"], blocks["dynamics"], capacitance=f64(cap),
-                           coupling=f64(coup), structure=config.creep_structure, offset=f64(offset),
-                           prehistory=None if pre is None else f64(pre))
+                           coupling=f64(coup), structure=config.creep_structure, **self.state_values(config))
 
     def default_free(self, config):
-        return (("capacitance", "coupling") if config.charge is not None else ()) + (
-            ("offset",) if self.offset(config) is not False else ()) + (
-            ("prehistory",) if self.prehistory(config) is not False else ())
+        return (("capacitance", "coupling") if config.charge is not None else ()) + self.state_free(config)
+
+    def displacement(self, model, experiment):
+        from ._config import _displacement
+
+        return np.asarray(_displacement(model, jnp.asarray(experiment.v_in), jnp.asarray(experiment.dt)))
 
     def fit_free(self, config, free, targets):
         if targets is not None and not {"charge", "current"} & set(targets):
@@ -226,37 +294,6 @@ class ActuatorModel(ModelKind):
             coup = float(coef[i])
         return cap, coup
 
-    def start_state(self, config, model, dataset):
-        """The offset (the mean residual) and the prehistory (the best of a grid of excursions from -max|v| to
-        max|v|, each with its offset), where the file gives no number."""
-        from ._config import _displacement, _start_error
-
-        offset, pre = self.offset(config), self.prehistory(config)
-        if offset is not True and pre is not True:
-            return model
-        recs = [e for e in dataset if e.has("displacement")]
-        if not recs:
-            return model
-
-        def with_offset(m):
-            if offset is not True:
-                return m
-            res = np.concatenate([np.asarray(e["displacement"]) - np.asarray(
-                _displacement(m, jnp.asarray(e.v_in), jnp.asarray(e.dt))) for e in recs])
-            b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
-            return eqx.tree_at(lambda a: a.offset, m, jnp.asarray(b + float(m.offset), m.offset.dtype))
-
-        if pre is not True:
-            return with_offset(model)
-        vmax = max(float(np.max(np.abs(e.v_in))) for e in recs)
-        best, best_err = None, np.inf
-        for u in vmax * np.linspace(-1.0, 1.0, 9):
-            cand = with_offset(eqx.tree_at(lambda a: a.prehistory, model, jnp.asarray(u, model.prehistory.dtype)))
-            err = _start_error(cand, recs)
-            if best is None or err < best_err:
-                best, best_err = cand, err
-        return best
-
 
 ACTUATOR = ActuatorModel()
 
@@ -274,7 +311,7 @@ _OBSERVER_REQUIRED = (
 )
 
 
-class CurrentIntegrationObserver(ModelKind):
+class CurrentIntegrationObserver(_WithState):
     """`pj.ForceDisplacementObserver`, paper 001's self-sensing observer: displacement and force from `v_in` and
     the measured integrator output `v_out`; `[hysteresis]` and `[creep]` are its charge operators (creep in
     parallel). The circuit constants are fixed by default (scaling all of them with β and the operators leaves the
@@ -282,7 +319,9 @@ class CurrentIntegrationObserver(ModelKind):
 
     name = "current_integration"
     keys = _OBSERVER_REQUIRED + ("bias_current", "capacitance_p", "filter_cutoff")
+    tables = ("state",)
     structures = ("parallel",)
+    offset_default = False  # the estimate of paper 001 has none unless asked for
 
     def parse(self, t, raw, source):
         missing = [k for k in _OBSERVER_REQUIRED if k not in t.data]
@@ -293,7 +332,7 @@ class CurrentIntegrationObserver(ModelKind):
             positive = k not in ("bias_current", "displacement_coefficient", "capacitance_p")
             out[k] = t.number(k, None, positive=positive, nonnegative=k == "capacitance_p",
                               nonzero=k == "displacement_coefficient")
-        return {k: v for k, v in out.items() if v is not None}
+        return {k: v for k, v in out.items() if v is not None} | {"state": parse_state(raw, source)}
 
     def outputs(self, config):
         return ("displacement", "force")
@@ -336,7 +375,7 @@ class CurrentIntegrationObserver(ModelKind):
             f64(o["integrator_capacitance"]), f64(o["reference_capacitance"]), f64(o["leakage_resistance"]),
             f64(o.get("bias_current", 0.0)), f64(o["force_sensitivity"]), f64(o["displacement_coefficient"]),
             f64(o["stiffness"]), capacitance_p=f64(cp), hysteresis=blocks["hysteresis"], creep=blocks["creep"],
-            filter_cutoff=None if fc is None else f64(fc),
+            filter_cutoff=None if fc is None else f64(fc), **self.state_values(config),
         )
 
     def constraints(self, config):
@@ -344,7 +383,16 @@ class CurrentIntegrationObserver(ModelKind):
 
     def default_free(self, config):
         return ("force_sensitivity", "displacement_coefficient", "stiffness") + (
-            ("capacitance_p",) if config.hysteresis_kind.empty else ())
+            ("capacitance_p",) if config.hysteresis_kind.empty else ()) + self.state_free(config)
+
+    def displacement(self, model, experiment):
+        return np.asarray(_observer_displacement(model, jnp.asarray(experiment.v_in),
+                                                 jnp.asarray(experiment["v_out"]), jnp.asarray(experiment.dt)))
+
+
+@eqx.filter_jit
+def _observer_displacement(model, v, v_out, dt):
+    return model(v, v_out, dt).displacement
 
 
 register_model_kind(CurrentIntegrationObserver())

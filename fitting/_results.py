@@ -46,8 +46,15 @@ class FitResult:
     - `parameter_names`, `values`, `std_errors`, `correlation`: the free parameters in physical units with their
       Gauss–Newton standard errors $\\sqrt{\\mathrm{diag}(D\\,s^2(J^\\top J)^{+}D^\\top)}$, $s^2 = \\|r\\|^2/(m - p)$,
       $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ (scaled);
-      `gradient_cosine`: $\\max_i |\\cos(r, J_{:,i})|$, ≈ 0 at a stationary point (a fit that stops with it above
-      `gtol` is reported as failed, code `"not_stationary"`).
+      `gradient_cosine`: $\\max_i |\\cos(r, J_{:,i})|$, ≈ 0 at a stationary point. A fit that stops with it above
+      `gtol` is probed along ± each parameter, the gradient and the Gauss–Newton step: if the cost rises along all
+      of them (one-sided slopes above $-$`gtol` in the same units) it is a minimum at a kink of the piecewise smooth
+      model, code `"converged_at_kink"`; else it failed, code `"not_stationary"`. A fit to rounding-level residuals
+      is `"converged_zero_residual"`.
+    - `std_error_status`: per parameter, `"finite"`, `"infinite"` (a tenth or more of its scaled change lies along a
+      direction the data do not determine), `"at a bound"` (a constrained entry within 1e-9 of its leaf's largest
+      magnitude from zero) or `"not computed"` (no finite Jacobian); the standard error of all but the first is
+      reported as infinite for all statuses but `"finite"` (NaN when not computed) and their correlations as NaN.
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
       `reason`, `steps`, and `best` (the one reported); `None` otherwise.
@@ -70,6 +77,7 @@ class FitResult:
     parameter_names: list[str]
     values: np.ndarray
     std_errors: np.ndarray
+    std_error_status: list[str]
     correlation: np.ndarray
     condition: float
     gradient_cosine: float
@@ -97,8 +105,8 @@ class FitResult:
             "condition": self.condition,
             "gradient_cosine": self.gradient_cosine,
             "parameters": {
-                n: {"value": float(v), "std_error": float(s), "std_error_status": _std_error_status(s)}
-                for n, v, s in zip(self.parameter_names, self.values, self.std_errors)
+                n: {"value": float(v), "std_error": float(s) if st == "finite" else None, "std_error_status": st}
+                for n, v, s, st in zip(self.parameter_names, self.values, self.std_errors, self.std_error_status)
             },
             "correlation": np.asarray(self.correlation).tolist(),
             "metrics": self.metrics,
@@ -121,9 +129,13 @@ class FitResult:
                          + " (* reported)")
         lines.append("parameters (value ± standard error):")
         w = max(len(n) for n in self.parameter_names)
-        for n, v, s in zip(self.parameter_names, self.values, self.std_errors):
-            rel = f"({100 * s / abs(v):.2g} %)" if v != 0 and np.isfinite(s) else ""
-            lines.append(f"  {n:<{w}}  {v: .6e} ± {s:.2e} {rel}")
+        for n, v, s, st in zip(self.parameter_names, self.values, self.std_errors, self.std_error_status):
+            if st == "finite":
+                rel = f"({100 * s / abs(v):.2g} %)" if v != 0 else ""
+                lines.append(f"  {n:<{w}}  {v: .6e} ± {s:.2e} {rel}")
+            else:
+                what = {"infinite": "± inf (not determined by the data)", "at a bound": "(at its constraint's bound)"}
+                lines.append(f"  {n:<{w}}  {v: .6e} {what.get(st, '(standard error not computed)')}")
         c = np.asarray(self.correlation)
         strong = [(abs(c[i, j]), i, j) for i in range(len(c)) for j in range(i) if abs(c[i, j]) > 0.99]
         if strong:
@@ -184,6 +196,102 @@ class FitResult:
             plot_result(self, folder)
 
 
+def _at_bound(problem, u) -> np.ndarray:
+    """Per free parameter: an entry of a leaf constrained away from zero (`pj.Positive`, `pj.OrderedPositive`,
+    `pj.Fractions`, negative poles) pressed against that bound, i.e. within 1e-9 of the largest magnitude in its
+    leaf of zero (a dead play weight, a vanished lag fraction)."""
+    import jax.tree_util as jtu
+
+    from ._kinds import Negative
+    from ._problem import _free_physical_tree, _is_reparam
+
+    flags = []
+    params = problem.params(u)
+    flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
+    zero_bounded = (pj.Positive, pj.OrderedPositive, pj.Fractions, Negative)
+    reparam = {_path(p) for p, leaf in flat if isinstance(leaf, zero_bounded)}
+    for path, value in _free_physical_tree(params, problem.mask).items():
+        a = np.abs(np.ravel(np.asarray(value, dtype=float)))
+        top = a.max() if a.size else 0.0
+        flags += list((a <= 1e-9 * top) & (path in reparam) & (a.size > 1)) if top > 0 else [False] * a.size
+    return np.asarray(flags, dtype=bool)
+
+
+def _path(path) -> str:
+    from ._problem import _path_string
+
+    return _path_string(path)
+
+
+def descent_point(problem, u, gtol: float = 1e-2):
+    """A point of lower cost than `u` past a kink that stopped the steps: from the lowest-cost probe of
+    `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when no probe lowers
+    the cost."""
+    r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
+    cost = 0.5 * float(np.sum(r**2))
+    if not np.isfinite(cost):
+        return None
+    slope, _, best = _probe_descent(problem, u, cost, r, jtr, jtj)
+    if best is None or slope >= -gtol:
+        return None  # no probe lowers the cost by more than the gtol test allows
+    # a line search along the best probed direction: double the step while the cost keeps falling
+    e, step, c = best
+    u = np.asarray(u, dtype=float)
+    limit = max(1.0, float(np.max(np.abs(u))))  # at most a unit change of the largest scaled parameter
+    while 2 * step <= limit:
+        c2 = _probe_cost(problem, u + 2 * step * e)
+        if not (np.isfinite(c2) and c2 < c):
+            break
+        step, c = 2 * step, c2
+    return u + step * e
+
+
+def _probe_cost(problem, u) -> float:
+    """The cost at `u`; `inf` where the predictions are not finite or the model's runtime checks fail."""
+    try:
+        rr = np.asarray(problem.residuals(jnp.asarray(u, dtype=problem.u0.dtype)))
+    except eqx.EquinoxRuntimeError:
+        return np.inf
+    c = 0.5 * float(np.sum(rr**2))
+    return c if np.isfinite(c) else np.inf
+
+
+def _probe_descent(problem, u, cost, r, jtr, jtj) -> tuple[float, bool, Any]:
+    r"""The subgradient form of the gtol test, for a fit that stops where the cost is not differentiable.
+
+    For directions $e$ (± each scaled parameter, the negative gradient, the Gauss–Newton step) and steps $h$ of
+    1e-7 and 1e-5 of max(1, |u|): the one-sided slope $(c(u + h e) - c(u))/h$, in the units of the gtol test,
+    $\|r\|\,\|J e\|$ (for a smooth cost it is the cosine between $r$ and $J e$, the quantity the gtol test bounds).
+    Returns the smallest (steepest descent, negative) of them, whether a step gave non-finite residuals, and the
+    probe of lowest cost if it is below `cost` (`(direction, step, cost)`; else `None`)."""
+    u = np.asarray(u, dtype=float)
+    jtj = np.asarray(jtj, dtype=float)
+    p = u.size
+    directions = [np.eye(p)[i] * sgn for i in range(p) for sgn in (1.0, -1.0)]
+    g = -np.asarray(jtr, dtype=float)
+    if np.any(g):
+        directions.append(g / np.max(np.abs(g)))
+    gn = np.linalg.lstsq(jtj, g, rcond=1e-12)[0]
+    if np.all(np.isfinite(gn)) and np.any(gn):
+        directions.append(gn / np.max(np.abs(gn)))
+    size = max(1.0, float(np.max(np.abs(u)))) if p else 1.0
+    rnorm = float(np.sqrt(np.sum(np.asarray(r, dtype=float) ** 2)))
+    slope, nonfinite, best, best_cost = np.inf, False, None, cost
+    for h in (1e-7, 1e-5):
+        for e in directions:
+            scale = rnorm * np.sqrt(max(float(e @ jtj @ e), 0.0))
+            if not scale > 0:
+                continue  # a direction the residuals do not depend on
+            c = _probe_cost(problem, u + h * size * e)
+            if np.isfinite(c):
+                slope = min(slope, (c - cost) / (h * size) / scale)
+                if c < best_cost:
+                    best, best_cost = (e, h * size, c), c
+            else:
+                nonfinite = True
+    return slope, nonfinite, best
+
+
 def _std_error_status(s) -> str:
     """How to read a standard error in `result.json`, where JSON can hold neither inf nor NaN (both are `null`):
     `"finite"`, `"infinite"` (the data do not determine the parameter) or `"not computed"` (no finite Jacobian)."""
@@ -234,16 +342,26 @@ def summarise(
     d = np.asarray(problem.physical_jacobian(u))
     cov = d @ cov_u @ d.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    status = np.full(se.shape, "finite", dtype=object)
     if not np.all(keep):
-        # directions the data do not determine: their standard error is infinite, not zero
+        # directions the data do not determine: a parameter with a tenth or more of its (scaled) change along them
+        # is undetermined (infinite standard error); the others keep the finite errors of the pseudo-inverse,
+        # i.e. with the undetermined combination held fixed (touching it by 1e-3 does not make a parameter unknown)
         null = evecs[:, ~keep]
-        undetermined = np.abs(d @ null).max(axis=1) > 1e-12 * np.maximum(np.abs(d).max(axis=1), 1e-300)
-        se = np.where(undetermined, np.inf, se)
+        share = np.abs(d @ null).max(axis=1) / np.maximum(np.abs(d).max(axis=1), 1e-300)
+        status[share >= 0.1] = "infinite"
+    status[_at_bound(problem, u)] = "at a bound"
+    # the correlations of the determined parameters, from the covariance before the others are marked
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
+    corr[status != "finite", :] = np.nan
+    corr[:, status != "finite"] = np.nan
+    np.fill_diagonal(corr, np.where(status == "finite", 1.0, np.nan))
+    se = np.where(status == "finite", se, np.inf)
     condition = float(top / evals.min()) if evals.size and evals.min() > 0 else float("inf")
     if not finite:
         se, corr = np.full_like(se, np.nan), np.full_like(corr, np.nan)
+        status[:] = "not computed"
     # first-order optimality (MINPACK's gtol test): the largest cosine between the residual and a Jacobian column
     col_norms = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
     rnorm = np.sqrt(np.sum(r**2))
@@ -251,9 +369,29 @@ def summarise(
         cosines = np.abs(jtr) / (col_norms * rnorm)
     gradient_cosine = float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
     if success and gradient_cosine > gtol:
-        success, code = False, "not_stationary"
-        reason = (f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
-                  f"{gtol:g}): the trust region shrank without a decrease (non-finite or non-smooth model?)")
+        initial = float(history[0]) if history else cost
+        if cost <= (1e4 * np.finfo(float).eps) ** 2 * initial:
+            # the residuals are rounding noise: their direction, hence the cosine, means nothing
+            code = "converged_zero_residual"
+            reason = (f"converged to a zero residual (cost {cost:.3e}, {cost / initial:.1e} of the start's: the "
+                      f"gradient test max |cos(r, J_i)| = {gradient_cosine:.2e} is rounding noise there)")
+        else:
+            slope, nonfinite, _ = _probe_descent(problem, u, cost, r, jtr, jtj)
+            if slope >= -gtol and not nonfinite:
+                # the one-sided slopes of the cost along every probed direction pass the gtol test: a minimum
+                # where the cost is not differentiable (the exact operators are piecewise smooth), where the
+                # gradient (one side's derivative) cannot
+                code = "converged_at_kink"
+                reason = (f"converged at a kink of the cost (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
+                          f"{gtol:g} from one side's derivative, but the cost rises along ± each parameter, the "
+                          f"gradient and the Gauss–Newton direction: steepest one-sided slope {slope:+.1e} in gtol's "
+                          "units; the exact, piecewise smooth model is not differentiable there)")
+            else:
+                success, code = False, "not_stationary"
+                why = (f"the cost falls along a probed direction (slope {slope:+.1e} in gtol's units)"
+                       if slope < -gtol else "the model is not finite next to this point")
+                reason = (f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > "
+                          f"gtol = {gtol:g}; {why}): the trust region shrank without a decrease")
 
     # the errors are the residuals unweighted: no further simulation
     metrics = {}
@@ -277,6 +415,7 @@ def summarise(
         parameter_names=problem.parameter_names(),
         values=np.asarray(problem.physical(u)),
         std_errors=se,
+        std_error_status=[str(x) for x in status],
         correlation=corr,
         condition=condition,
         gradient_cosine=gradient_cosine,

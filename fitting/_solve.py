@@ -18,7 +18,7 @@ import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
 from ._problem import Problem, _linearise, _over_starts
-from ._results import FitResult, summarise
+from ._results import FitResult, descent_point, summarise
 
 
 def set_smoothing(model, smoothing: float):
@@ -331,6 +331,19 @@ def _iterate(u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
 _HARD = ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed")
 
 
+def _stationary(problem, u, gtol) -> bool:
+    """MINPACK's gtol test at `u`: the largest cosine between the residual and a Jacobian column is at most `gtol`
+    (or the residual is zero)."""
+    r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
+    rnorm = float(np.sqrt(np.sum(r**2)))
+    cols = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
+    if not (rnorm > 0 and np.all(np.isfinite(jtr))):
+        return True
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(jtr) / (cols * rnorm)
+    return not cos.size or float(np.nanmax(cos)) <= gtol
+
+
 def _start_verdict(runs, n_levels):
     """`(success, reason, code)` of one start over its continuation levels: its first hard failure, else the last
     level's verdict (earlier levels may stop at max_steps without failing the fit)."""
@@ -338,7 +351,7 @@ def _start_verdict(runs, n_levels):
         if not run.success and run.code in _HARD:
             return False, run.reason, run.code
     last = runs[-1][1]
-    return last.success and len(runs) == n_levels, last.reason, last.code
+    return last.success and len(runs) >= n_levels, last.reason, last.code  # (kink restarts come after the levels)
 
 
 def solve(
@@ -354,6 +367,7 @@ def solve(
     progress: bool = True,
     throw: bool = False,
     gtol: float = 1e-2,
+    kink_restarts: int = 3,
     method: str = "levenberg_marquardt",
 ) -> FitResult:
     r"""Solve a `Problem` by Levenberg–Marquardt (`optimistix.LevenbergMarquardt`) from its initial model.
@@ -390,8 +404,13 @@ def solve(
       below `rtol` relative). `linear_solver` is not used. On the calibration benchmark it needed about half the
       Jacobians of `"levenberg_marquardt"` (`experiments/bench_calibration.py`); both are local methods.
     - `progress`: print step, cost, accepted steps and elapsed time on stderr.
-    - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` (not a stationary point: e.g. the trust
-      region shrank to nothing around non-finite predictions) is reported as failed (`"not_stationary"`).
+    - `gtol`: a fit that stops with $\max_i|\cos(r, J_{:,i})| >$ `gtol` is probed along ± each parameter, the
+      gradient and the Gauss–Newton step (see `FitResult`): a minimum at a kink of the piecewise smooth model is
+      converged (`"converged_at_kink"`), a point where the cost still falls or the model is not finite nearby failed
+      (`"not_stationary"`).
+    - `kink_restarts`: where a start's steps stop although a probed direction lowers the cost (a joint step keeps
+      crossing a kink of the exact operators), the fit moves to the lowest probed point and iterates again, at most
+      this many times (0: never). Each restart costs about `4 p + 4` residual evaluations and a new iteration.
     - `throw`: raise `RuntimeError` with the reason when the fit fails, instead of returning a failed result.
 
     **Returns:** a `FitResult`. A failed fit (max steps, stall, non-finite predictions, Ctrl-C) is returned with
@@ -406,6 +425,8 @@ def solve(
         linear_solver = lx.Cholesky()
     if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 1:
         raise PiezojaxValueError(f"`max_steps` must be an integer >= 1, got {max_steps!r}")
+    if isinstance(kink_restarts, bool) or not isinstance(kink_restarts, int | np.integer) or kink_restarts < 0:
+        raise PiezojaxValueError(f"`kink_restarts` must be an integer >= 0, got {kink_restarts!r}")
     if method not in ("levenberg_marquardt", "trust_region"):
         raise PiezojaxValueError(f'`method` must be "levenberg_marquardt" or "trust_region", got {method!r}')
     levels = [None] if smoothing is None else list(smoothing)
@@ -435,6 +456,33 @@ def solve(
             per_start[i].append((s, run))
         u = jnp.stack([run.u for run in runs])
         if any(run.code == "interrupted" for run in runs) or all(run.code in _HARD for run in runs):
+            break
+    # past kinks: where a start's steps stopped although the cost still falls along a probed direction by more than
+    # the gtol test allows (the exact operators are piecewise smooth, and a joint step can keep crossing a kink), go
+    # to the lowest point along that direction and iterate again, at most `kink_restarts` times per start; a restart
+    # is kept only if it converges at a lower cost
+    interrupted = any(run.code == "interrupted" for runs_i in per_start for _, run in runs_i)
+    for i in range(u.shape[0]):
+        if interrupted or any(run.code in _HARD for _, run in per_start[i]):
+            continue
+        for _ in range(kink_restarts):
+            last = per_start[i][-1][1]
+            if not last.success or _stationary(level, u[i], gtol):
+                break
+            nxt = descent_point(level, u[i], gtol)
+            if nxt is None:
+                break
+            (run,) = _iterate(jnp.asarray(nxt, u.dtype)[None], level.core, rtol=rtol, atol=atol, ftol=ftol,
+                              max_steps=max_steps, linear_solver=linear_solver, progress=progress,
+                              label=f"{label}[past a kink] ", method=method)
+            if run.code == "interrupted":
+                interrupted = True
+                break
+            if not (run.success and run.history[-1] < last.history[-1]):
+                break
+            per_start[i].append((levels[-1], run))
+            u = u.at[i].set(run.u)
+        if interrupted:
             break
     seconds = time.perf_counter() - t0
     verdicts = [_start_verdict(runs, len(levels)) for runs in per_start]

@@ -222,3 +222,19 @@ def test_every_registered_kind_builds_placeholders_that_simulate():
             model = pj.unwrap(cfg.build(None))
             x = np.asarray(eqx.filter_jit(lambda m: m.simulate(v, DT).displacement)(model))
             assert x.shape == (200,) and np.all(np.isfinite(x)), (table, name)
+
+
+def test_forward_simulation_lists_every_missing_value_and_optional_ones_need_no_data():
+    text = ('[hysteresis]\nkind = "bouc_wen"\nA = 0.5\nbeta = 0.01\ngamma = 0.01\nd = 1.0\n[dynamics]\norder = 1\n'
+            'zeros = [-5.0]\nreal_zeros = 1\n[charge]\ncoupling = 0.1\n')
+    cfg = parse_config(text, "m.toml")
+    assert cfg.missing_values() == ["[dynamics] poles", "[charge] capacitance"]
+    # only optional values missing (the Bouc–Wen exponent, the dynamics' gain): no data-driven start is run, so a
+    # dataset without the displacement the starts would need is fine
+    full = parse_config(text.replace("zeros = [-5.0]", "poles = [-100.0]\nzeros = [-5.0]").replace(
+        "coupling = 0.1", "coupling = 0.1\ncapacitance = 1e-9"), "m.toml")
+    assert full.missing_values() == []
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, charge=1e-9 * V, name="q")])
+    model = pj.unwrap(full.build(ds))
+    assert float(model.hysteresis.n) == 1.0 and float(model.dynamics.gain) == 1.0
+    np.testing.assert_allclose(model.dynamics.zeros, [-5.0])
