@@ -202,3 +202,66 @@ def test_bad_state_arguments_are_named(kwargs, match):
     kw = {"hysteresis": pi(), **kwargs}
     with pytest.raises(pj.PiezojaxValueError, match=match):
         pj.Actuator(kw.pop("hysteresis"), None, dynamics(), **kw)
+
+
+# ---------------------------------------------------------------------------------------------- the observer
+
+
+def _observer(**kw):
+    # paper 001's observer with a PI charge operator (weights in C/V) and no creep
+    pi_q = pj.PrandtlIshlinskii(W * 1e-9, R, w0=W0 * 1e-9)
+    return pj.ForceDisplacementObserver(100e-9, 1.74e-9, 1e12, 0.0, 1.03e-6, -4e-3, 150.0, hysteresis=pi_q, **kw)
+
+
+def test_observer_prehistory_and_offset_match_independent_reference():
+    v_out = 0.05 * np.sin(2 * np.pi * 2 * T) - 0.02 * V
+    plain = _observer()
+    u_p, b = -45.0, 3e-6
+    est = _observer(prehistory=u_p, offset=b)(jnp.asarray(V), jnp.asarray(v_out), DT)
+    q = np.asarray(plain.compensated_charge(jnp.asarray(V), jnp.asarray(v_out), DT))
+    _, p = pi_numpy(np.array([u_p, 0.0]))
+    h, _ = pi_numpy(V, p)
+    q_v = 1e-9 * (h - W @ p)  # the integrator reads the operator's change from the end of the excursion
+    force_ref = (q - q_v) / 1.03e-6
+    np.testing.assert_allclose(np.asarray(est.force), force_ref, rtol=1e-10, atol=1e-12 * np.ptp(force_ref))
+    ref = plain(jnp.asarray(V), jnp.asarray(v_out), DT)
+    delta_ref = np.asarray(ref.displacement) - (force_ref - np.asarray(ref.force)) / 150.0 + b
+    np.testing.assert_allclose(np.asarray(est.displacement), delta_ref, rtol=0, atol=1e-9 * np.ptp(delta_ref))
+    # differentiable in both, under jit
+    g = jax.jit(jax.grad(lambda m: jnp.sum(m(jnp.asarray(V), jnp.asarray(v_out), DT).force)))(
+        _observer(prehistory=u_p, offset=b))
+    assert np.isfinite(float(g.prehistory)) and float(g.prehistory) != 0.0
+    with pytest.raises(pj.PiezojaxValueError, match="`prehistory` sets the remanent state of `hysteresis`"):
+        pj.ForceDisplacementObserver(100e-9, 1.74e-9, 1e12, 0.0, 1.03e-6, -4e-3, 150.0, prehistory=1.0)
+
+
+def test_observer_state_in_config_is_fitted_and_started_from_data():
+    truth = _observer(prehistory=-50.0, offset=2e-6)
+    q = 1e-9 * pi_numpy(V, pi_numpy(np.array([-50.0, 0.0]))[1])[0] - 1e-9 * W @ pi_numpy(np.array([-50.0, 0.0]))[1]
+    plain = _observer()
+    # v_out such that the compensated charge equals the operator's (no external force): Q = -C v_out + C_R v - leak
+    leak = np.asarray(plain.compensated_charge(jnp.asarray(V), jnp.zeros_like(jnp.asarray(V)), DT))
+    v_out = (leak - q) / 100e-9
+    est = truth(jnp.asarray(V), jnp.asarray(v_out), DT)
+    np.testing.assert_allclose(np.asarray(est.force), 0.0, atol=1e-9)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, v_out=v_out, name="r",
+                                                         displacement=np.asarray(est.displacement))])
+    text = ('[observer]\nkind = "current_integration"\nintegrator_capacitance = 100e-9\nreference_capacitance = 1.74e-9\n'
+            'leakage_resistance = 1e12\nforce_sensitivity = 1.03e-6\ndisplacement_coefficient = -4e-3\n'
+            'stiffness = 150.0\n[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n'
+            f'weights = {(W * 1e-9).tolist()}\nthresholds = {R.tolist()}\nw0 = {W0 * 1e-9}\n'
+            '[state]\nprehistory = true\noffset = true\n')
+    cfg = fitting.parse_config(text, "obs.toml")
+    assert cfg.default_free()[-2:] == ("offset", "prehistory")
+    start = pj.unwrap(cfg.build(ds))
+    assert isinstance(start, pj.ForceDisplacementObserver)
+    # the grid point nearest -50 (steps of max|v| / 4) and the offset of that start
+    assert float(start.prehistory) == pytest.approx(-np.max(np.abs(V)), rel=1e-12)
+    result = fitting.fit(cfg.build(ds), ds, predictor=cfg.predictor(), targets=("displacement",),
+                         free=["offset", "prehistory"], max_steps=100)
+    fitted = pj.unwrap(result.model)
+    assert float(fitted.prehistory) == pytest.approx(-50.0, rel=1e-3)
+    assert float(fitted.offset) == pytest.approx(2e-6, rel=1e-3)
+    # the observer's default: no offset (the estimate of paper 001)
+    plain_cfg = fitting.parse_config(text.replace("[state]\nprehistory = true\noffset = true\n", ""), "obs.toml")
+    assert "offset" not in plain_cfg.default_free()

@@ -4,7 +4,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import check_value
+from .._checks import PiezojaxValueError, check_value
 from .._circuits.base import (
     apply_operator,
     check_positive_param,
@@ -58,6 +58,11 @@ class ForceDisplacementObserver(AbstractObserver):
     - `hysteresis`: $\mathcal{F}_H$ (a module mapping a signal to a signal, in C), or `None`.
     - `creep`: $\mathcal{F}_C$ (called as `creep(v_in, dt)`), or `None`.
     - `filter_cutoff`: Butterworth cutoff [Hz], or `None`.
+    - `offset` [m]: added to the displacement estimate (the zero of the displacement sensor it is compared with).
+    - `prehistory` $u_p$ [V], or `None`: the remanent state of $\mathcal{F}_H$ from the actuator's last use, as an
+      excursion $0 \to u_p \to 0$ of the demagnetised operator before the record (as `pj.Actuator`'s). The
+      integrator is reset at $t = 0$, so it reads charge *changes*: the operator's charge enters as
+      $\mathcal{F}_H[V](t) - h_r$, $h_r$ its remanent output at the end of the excursion. Needs `hysteresis`.
 
     ```python
     obs = pj.ForceDisplacementObserver(100e-9, 1.74e-9, 1e12, 0.0, 1.03e-6, -4e-3, 150.0,
@@ -77,6 +82,8 @@ class ForceDisplacementObserver(AbstractObserver):
     hysteresis: eqx.Module | None
     creep: eqx.Module | None
     filter_cutoff: Float[Array, ""] | None
+    offset: Float[Array, ""]
+    prehistory: Float[Array, ""] | None
 
     def __init__(
         self,
@@ -91,6 +98,9 @@ class ForceDisplacementObserver(AbstractObserver):
         hysteresis: eqx.Module | None = None,
         creep: eqx.Module | None = None,
         filter_cutoff: ArrayLike | None = None,
+        *,
+        offset: ArrayLike = 0.0,
+        prehistory: ArrayLike | None = None,
     ):
         self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance")
         self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance")
@@ -105,12 +115,16 @@ class ForceDisplacementObserver(AbstractObserver):
         self.hysteresis = hysteresis
         self.creep = creep
         self.filter_cutoff = None if filter_cutoff is None else check_positive_param(filter_cutoff, "filter_cutoff")
+        self.offset = check_scalar_param(offset, "offset")
+        if prehistory is not None and hysteresis is None:
+            raise PiezojaxValueError("`prehistory` sets the remanent state of `hysteresis`; the observer has none")
+        self.prehistory = None if prehistory is None else check_scalar_param(prehistory, "prehistory")
 
     def check(self) -> "ForceDisplacementObserver":
         names = ("integrator_capacitance", "reference_capacitance", "leakage_resistance", "force_sensitivity",
                  "stiffness", "capacitance_p") + (("filter_cutoff",) if self.filter_cutoff is not None else ())
         m = error_if_not_positive(self, names, allow_zero=("capacitance_p",))
-        m = error_if_not_finite(m, ("bias_current",))
+        m = error_if_not_finite(m, ("bias_current", "offset") + (("prehistory",) if m.prehistory is not None else ()))
         return eqx.tree_at(lambda o: o.displacement_coefficient, m, _check_nonzero(m.displacement_coefficient))
 
     def _compensated_charge(self, v: Array, v_out: Array, dt: Array) -> Array:
@@ -135,10 +149,17 @@ class ForceDisplacementObserver(AbstractObserver):
         m, dt, s = prepare(self, dt, v_in=v_in, v_out=v_out)
         v = s["v_in"]
         q = m._compensated_charge(v, s["v_out"], dt)
-        q_v = m.capacitance_p * v if m.hysteresis is None else apply_operator(m.hysteresis, v)
+        if m.hysteresis is None:
+            q_v = m.capacitance_p * v
+        elif m.prehistory is None:
+            q_v = apply_operator(m.hysteresis, v)
+        else:  # the excursion 0 -> u_p -> 0 first; the integrator reads the change from its end
+            path = jnp.stack([m.prehistory.astype(v.dtype), jnp.zeros((), v.dtype)])
+            h = apply_operator(m.hysteresis, jnp.concatenate([path, v]))
+            q_v = h[2:] - h[1]
         if m.creep is not None:
             q_v = q_v + m.creep(v, dt)
         force = (q - q_v) / m.force_sensitivity
         force_term = force if m.filter_cutoff is None else butterworth3(m.filter_cutoff).simulate(force, dt)
-        displacement = q / m.displacement_coefficient - force_term / m.stiffness
+        displacement = q / m.displacement_coefficient - force_term / m.stiffness + m.offset
         return Estimate(displacement=displacement, force=force)
