@@ -223,6 +223,11 @@ def _path(path) -> str:
     return _path_string(path)
 
 
+KINK_FTOL = 1e-5
+"""A fit whose last restart past a kink (`solve`'s `kink_restarts`) lowered the cost by less than this fraction of
+it no longer decreases in practice: it is converged (`"converged_at_kink"`) whatever the probed slopes."""
+
+
 def descent_point(problem, u, gtol: float = 1e-2):
     """A point of lower cost than `u` past a kink that stopped the steps: from the lowest-cost probe of
     `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when no probe lowers
@@ -324,7 +329,8 @@ def load_summary(path) -> dict:
 
 
 def summarise(
-    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2, history_steps=None
+    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2, history_steps=None,
+    kink_gain=None,
 ) -> FitResult:
     """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
     r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
@@ -386,6 +392,12 @@ def summarise(
                           f"{gtol:g} from one side's derivative, but the cost rises along ± each parameter, the "
                           f"gradient and the Gauss–Newton direction: steepest one-sided slope {slope:+.1e} in gtol's "
                           "units; the exact, piecewise smooth model is not differentiable there)")
+            elif kink_gain is not None and kink_gain < KINK_FTOL and not nonfinite:
+                code = "converged_at_kink"
+                reason = (f"converged: the cost no longer decreases (the last restart past a kink lowered it by "
+                          f"{kink_gain:.1e} of it, below {KINK_FTOL:g}), although it still falls along a probed "
+                          f"direction at a one-sided slope of {slope:+.1e} in gtol's units (gtol = {gtol:g}): the "
+                          "kinks of the exact, piecewise smooth model stop every step within a short distance")
             else:
                 success, code = False, "not_stationary"
                 why = (f"the cost falls along a probed direction (slope {slope:+.1e} in gtol's units)"

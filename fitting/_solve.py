@@ -411,6 +411,9 @@ def solve(
     - `kink_restarts`: where a start's steps stop although a probed direction lowers the cost (a joint step keeps
       crossing a kink of the exact operators), the fit moves to the lowest probed point and iterates again, at most
       this many times (0: never). Each restart costs about `4 p + 4` residual evaluations and a new iteration.
+      When the last restart lowered the cost by less than `fitting._results.KINK_FTOL` (1e-5) of it, the cost no
+      longer decreases in practice (the exact operators' kinks are dense: each step ends at the next one) and the
+      fit is converged (`"converged_at_kink"`, with both numbers in the reason).
     - `throw`: raise `RuntimeError` with the reason when the fit fails, instead of returning a failed result.
 
     **Returns:** a `FitResult`. A failed fit (max steps, stall, non-finite predictions, Ctrl-C) is returned with
@@ -462,6 +465,7 @@ def solve(
     # to the lowest point along that direction and iterate again, at most `kink_restarts` times per start; a restart
     # is kept only if it converges at a lower cost
     interrupted = any(run.code == "interrupted" for runs_i in per_start for _, run in runs_i)
+    kink_gain: list[float | None] = [None] * u.shape[0]  # relative decrease by the last restart (0: none)
     for i in range(u.shape[0]):
         if interrupted or any(run.code in _HARD for _, run in per_start[i]):
             continue
@@ -478,8 +482,12 @@ def solve(
             if run.code == "interrupted":
                 interrupted = True
                 break
-            if not (run.success and run.history[-1] < last.history[-1]):
+            if not run.success:
+                break  # inconclusive: keep the earlier point and its verdict
+            if not run.history[-1] < last.history[-1]:
+                kink_gain[i] = 0.0
                 break
+            kink_gain[i] = (last.history[-1] - run.history[-1]) / last.history[-1]
             per_start[i].append((levels[-1], run))
             u = u.at[i].set(run.u)
         if interrupted:
@@ -504,6 +512,7 @@ def solve(
         seconds=seconds,
         levels=[{"smoothing": s, "steps": r.steps, "cost": r.history[-1], "reason": r.reason} for s, r in runs],
         gtol=gtol,
+        kink_gain=kink_gain[best],
     )
     if starts is not None:
         result.starts = [

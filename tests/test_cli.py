@@ -458,7 +458,7 @@ def test_shipped_config_calibrates_the_measured_actuator(tmp_path):
     config = ROOT / "experiments" / "configs" / "piezo_150v_pi.toml"
     fit_dir, pred_dir = tmp_path / "fit", tmp_path / "held_out"
     assert main(["fit", str(config), str(data), "--window", ":7", "--out", str(fit_dir), "--quiet",
-                 "--no-figures"]) in (0, 1)
+                 "--no-figures"]) == 0  # converged (at a kink of the exact PI)
     assert main(["predict", str(fit_dir), str(data), "--score-from", "7", "--out", str(pred_dir)]) == 0
     scored = json.loads((pred_dir / "metrics.json").read_text())["metrics"]["hysteresis_v_150_1hz"]["displacement"]
     pred = np.genfromtxt(pred_dir / "hysteresis_v_150_1hz.csv", delimiter=",", names=True, skip_header=1)
