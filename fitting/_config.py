@@ -179,7 +179,7 @@ class ModelConfig:
         return self._block_path("hysteresis")
 
     def _block_tables(self) -> tuple[str, ...]:
-        return ("hysteresis", "creep") + (("dynamics",) if "dynamics" in self.model_kind.tables else ())
+        return self.model_kind.blocks
 
     @property
     def outputs(self) -> tuple[str, ...]:
@@ -394,8 +394,8 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         mt = ConfigTable(source, "observer", raw["observer"], mkind.keys, model)
     else:
         model, mkind, mt = ACTUATOR.name, ACTUATOR, None
-    for t in ("dynamics", "charge", "state"):
-        if t in raw and t not in mkind.tables:
+    for t in ("hysteresis", "creep", "dynamics", "charge", "state"):
+        if t in raw and t not in mkind.tables + mkind.blocks:
             raise PiezojaxValueError(
                 f"{source}: [{t}] is not used by the {mkind.name.replace('_', ' ')} model (kind {model!r}); remove "
                 f"it, or remove [{mkind.table}] for an actuator model")
@@ -403,8 +403,9 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     # the blocks, each parsed by its kind
     kinds, opts = {}, {}
     for table in ("hysteresis", "creep", "dynamics"):
-        if table == "dynamics" and "dynamics" not in mkind.tables:
-            kinds[table], opts[table] = "transfer_function", {"order": 0, "zero_pairs": 0, "real_zeros": 0}
+        if table not in mkind.blocks:  # a block the model does not have
+            kinds[table] = DEFAULT_KIND[table] if table != "dynamics" else "transfer_function"
+            opts[table] = {"order": 0, "zero_pairs": 0, "real_zeros": 0} if table == "dynamics" else {}
             continue
         data = raw.get(table, {"kind": DEFAULT_KIND[table]} if table != "dynamics" else {"order": 0})
         if table == "dynamics" and isinstance(data, Mapping) and "kind" not in data:

@@ -27,8 +27,8 @@ class ModelKind:
     - `table`: the CONFIG table naming it (`"observer"`), or `None` for the default model (no such table).
     - `name`: the kind's name in that table.
     - `keys`: the keys of that table besides `kind`.
-    - `tables`: the other tables the model uses besides `[hysteresis]` and `[creep]` (an unused table present in
-      the CONFIG is an error).
+    - `blocks`: the block tables the model is built from (`"hysteresis"`, `"creep"`, `"dynamics"`);
+      `tables`: the other tables it uses (an unused table present in the CONFIG is an error).
     - `structures`: the creep structures it supports.
     - `scale_in_dynamics`: without hysteresis, the dynamics' gain carries the scale from volts to the output.
     - `cold_start`: the model is a `pj.Actuator`, so `fitting.cold_start_actuator` applies to it.
@@ -37,6 +37,7 @@ class ModelKind:
     table: ClassVar[str | None] = "observer"
     name: ClassVar[str]
     keys: ClassVar[tuple[str, ...]] = ()
+    blocks: ClassVar[tuple[str, ...]] = ("hysteresis", "creep")
     tables: ClassVar[tuple[str, ...]] = ()
     structures: ClassVar[tuple[str, ...]] = ("parallel", "series")
     scale_in_dynamics: ClassVar[bool] = False
@@ -208,7 +209,8 @@ class ActuatorModel(_WithState):
     (`offset`, `prehistory`: `true` fitted from a data-driven start, `false` absent, or a number, the start)."""
 
     table, name = None, "actuator"
-    tables = ("dynamics", "charge", "state")
+    blocks = ("hysteresis", "creep", "dynamics")
+    tables = ("charge", "state")
     scale_in_dynamics = True
     cold_start = True
 
@@ -396,3 +398,117 @@ def _observer_displacement(model, v, v_out, dt):
 
 
 register_model_kind(CurrentIntegrationObserver())
+
+
+def _required_numbers(t: ConfigTable, required: tuple[str, ...], optional: dict[str, dict]) -> dict:
+    """The observer table's constants: `required` (each > 0 unless `optional` says otherwise) and `optional` (name →
+    `ConfigTable.number` options, absent ones left out)."""
+    missing = [k for k in required if k not in t.data]
+    if missing:
+        raise t.error(f"missing key(s) {', '.join(missing)} (the circuit constants)")
+    out = {k: t.number(k, None, **optional.get(k, {"positive": True})) for k in required}
+    for k, opts in optional.items():
+        if k not in required and k in t.data:
+            out[k] = t.number(k, None, **opts)
+    return out
+
+
+class DynamicImpedanceKind(ModelKind):
+    r"""`pj.DynamicImpedanceObserver`, paper 000's displacement observer from the transimpedance amplifier output
+    `v_out`: $\hat\delta = G(s)[\alpha V_{in} + \beta(Q_\delta + \gamma V_{in})]$, with $G$ the `[dynamics]` table (its
+    DC gain included: without it the scale of $\alpha$, $\beta$ would be free). Required: `feedback_resistance`
+    $R_f$, `capacitance` $C_r$ [F], `alpha`, `beta`; optional `bias_current = 0`, `gamma` (default: fitted from
+    0.1 $C_r$). Fitted by default: `gamma` and $G$."""
+
+    name = "dynamic_impedance"
+    keys = ("feedback_resistance", "capacitance", "alpha", "beta", "bias_current", "gamma")
+    blocks = ("dynamics",)
+    scale_in_dynamics = True
+
+    def parse(self, t, raw, source):
+        return _required_numbers(t, ("feedback_resistance", "capacitance", "alpha", "beta"),
+                                 {"alpha": {}, "beta": {}, "bias_current": {}, "gamma": {"nonnegative": True}})
+
+    def outputs(self, config):
+        return ("displacement",)
+
+    def inputs(self, config):
+        return ("v_out",)
+
+    def predictor(self, config):
+        from ._predict import observer_predictor
+
+        return observer_predictor(force=False)
+
+    def _observer(self, config, dynamics, gamma):
+        o = config.model_options
+        return pj.DynamicImpedanceObserver(
+            f64(o["feedback_resistance"]), f64(o["capacitance"]), f64(gamma), f64(o.get("bias_current", 0.0)),
+            f64(o["alpha"]), f64(o["beta"]), dynamics)
+
+    def _gamma(self, config):
+        g = config.model_options.get("gamma")
+        return 0.1 * config.model_options["capacitance"] if g is None else g
+
+    def records(self, config, dataset):
+        # the transduced force F_t (at the start's gamma) against the displacement: G's static gain is their chord
+        obs = self._observer(config, pj.StableTransferFunction(1.0), self._gamma(config))
+        recs = [(np.asarray(obs.transduced_force(jnp.asarray(e.v_in), jnp.asarray(e["v_out"]), e.dt)),
+                 np.asarray(e["displacement"]), e.dt) for e in dataset if e.has("v_out") and e.has("displacement")]
+        if not recs:
+            raise PiezojaxValueError("initial values for the observer's dynamics need data files with 'v_out' and "
+                                     "'displacement' columns (or give the values explicitly in the configuration)")
+        return recs
+
+    def build(self, config, blocks, data):
+        return self._observer(config, blocks["dynamics"], self._gamma(config))
+
+    def constraints(self, config):
+        # gamma = 0 given explicitly is the static-impedance observer the paper compares against: fixed
+        return {} if config.model_options.get("gamma") == 0 else {"gamma": pj.Positive}
+
+    def default_free(self, config):
+        return () if config.model_options.get("gamma") == 0 else ("gamma",)
+
+
+class SensorLayerKind(ModelKind):
+    r"""`pj.SensorLayerObserver`, paper 002's smart-stack sensing layer: displacement and force from the sensor
+    voltage `v_out` ($V_s$) and the drive `v_in` ($V_a$). Required: `d33` [C/N], `amplifier_capacitance` [F], `k_p`,
+    `k_s` [N/m]; optional `crosstalk` $p_c$ (default 0). Fitted by default: `d33` (the force scale $d_{33}/C$),
+    `k_s` (with $k_p$ fixed, the compliance $1/k_p + 1/k_s$ of the displacement) and `crosstalk`."""
+
+    name = "sensor_layer"
+    keys = ("d33", "amplifier_capacitance", "k_p", "k_s", "crosstalk")
+    blocks = ()
+
+    def parse(self, t, raw, source):
+        return _required_numbers(t, ("d33", "amplifier_capacitance", "k_p", "k_s"), {"crosstalk": {}})
+
+    def outputs(self, config):
+        return ("displacement", "force")
+
+    def inputs(self, config):
+        return ("v_out",)
+
+    def predictor(self, config):
+        from ._predict import observer_predictor
+
+        return observer_predictor(force=True)
+
+    def records(self, config, dataset):
+        return []
+
+    def build(self, config, blocks, data):
+        o = config.model_options
+        return pj.SensorLayerObserver(f64(o["d33"]), f64(o["amplifier_capacitance"]), f64(o["k_p"]), f64(o["k_s"]),
+                                      crosstalk=f64(o.get("crosstalk", 0.0)))
+
+    def constraints(self, config):
+        return {"d33": pj.Positive, "k_s": pj.Positive}
+
+    def default_free(self, config):
+        return ("d33", "k_s", "crosstalk")
+
+
+register_model_kind(DynamicImpedanceKind())
+register_model_kind(SensorLayerKind())

@@ -45,6 +45,10 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
                 v_out; integrator_capacitance, reference_capacitance, leakage_resistance, force_sensitivity,
                 displacement_coefficient, stiffness (required), bias_current = 0, capacitance_p = 0,
                 filter_cutoff [Hz]; [hysteresis] and [creep] are then charge operators (C/V)
+              | "dynamic_impedance": paper 000, displacement from v_in, v_out; feedback_resistance, capacitance,
+                alpha, beta (required), bias_current, gamma; G(s) from [dynamics]
+              | "sensor_layer": paper 002, displacement and force from v_in, v_out; d33, amplifier_capacitance,
+                k_p, k_s (required), crosstalk
   [fit]         free = ["hysteresis", "creep.time_constants", ...] (default: every identifiable parameter)
                 weights = "range" | "noise" | {displacement = 1e6, force = 1e3}
                 smoothing = [0.05, 0.0]   (continuation: relaxed, then exact hysteresis)
