@@ -246,7 +246,8 @@ def test_observer_state_in_config_is_fitted_and_started_from_data():
     np.testing.assert_allclose(np.asarray(est.force), 0.0, atol=1e-9)
     ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, v_out=v_out, name="r",
                                                          displacement=np.asarray(est.displacement))])
-    text = ('[observer]\nkind = "current_integration"\nintegrator_capacitance = 100e-9\nreference_capacitance = 1.74e-9\n'
+    text = ('[observer]\nkind = "current_integration"\nintegrator_capacitance = 100e-9\n'
+            'reference_capacitance = 1.74e-9\n'
             'leakage_resistance = 1e12\nforce_sensitivity = 1.03e-6\ndisplacement_coefficient = -4e-3\n'
             'stiffness = 150.0\n[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n'
             f'weights = {(W * 1e-9).tolist()}\nthresholds = {R.tolist()}\nw0 = {W0 * 1e-9}\n'

@@ -240,7 +240,7 @@ def test_forward_simulation_lists_every_missing_value_and_optional_ones_need_no_
     np.testing.assert_allclose(model.dynamics.zeros, [-5.0])
 
 
-# ---------------------------------------------------------------------------------------------- observers of papers 000, 002
+# ---------------------------------------------------------------------------------------- observers of papers 000, 002
 
 
 def test_paper_000_dynamic_impedance_observer_is_configured_and_recovered():
