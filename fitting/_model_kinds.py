@@ -303,6 +303,24 @@ ACTUATOR = ActuatorModel()
 # ---------------------------------------------------------------------------------------------- observers
 
 
+class _Observer(ModelKind):
+    """A `pj.AbstractObserver`: estimates (`estimates`: displacement, and force where it has one) from the measured
+    `v_in` and `v_out`."""
+
+    estimates: ClassVar[tuple[str, ...]] = ("displacement", "force")
+
+    def outputs(self, config):
+        return self.estimates
+
+    def inputs(self, config):
+        return ("v_out",)
+
+    def predictor(self, config):
+        from ._predict import observer_predictor
+
+        return observer_predictor(force="force" in self.estimates)
+
+
 _OBSERVER_REQUIRED = (
     "integrator_capacitance",
     "reference_capacitance",
@@ -313,7 +331,7 @@ _OBSERVER_REQUIRED = (
 )
 
 
-class CurrentIntegrationObserver(_WithState):
+class CurrentIntegrationObserver(_WithState, _Observer):
     """`pj.ForceDisplacementObserver`, paper 001's self-sensing observer: displacement and force from `v_in` and
     the measured integrator output `v_out`; `[hysteresis]` and `[creep]` are its charge operators (creep in
     parallel). The circuit constants are fixed by default (scaling all of them with β and the operators leaves the
@@ -335,17 +353,6 @@ class CurrentIntegrationObserver(_WithState):
             out[k] = t.number(k, None, positive=positive, nonnegative=k == "capacitance_p",
                               nonzero=k == "displacement_coefficient")
         return {k: v for k, v in out.items() if v is not None} | {"state": parse_state(raw, source)}
-
-    def outputs(self, config):
-        return ("displacement", "force")
-
-    def inputs(self, config):
-        return ("v_out",)
-
-    def predictor(self, config):
-        from ._predict import observer_predictor
-
-        return observer_predictor(force=True)
 
     def records(self, config, dataset):
         o = config.model_options
@@ -413,7 +420,7 @@ def _required_numbers(t: ConfigTable, required: tuple[str, ...], optional: dict[
     return out
 
 
-class DynamicImpedanceKind(ModelKind):
+class DynamicImpedanceKind(_Observer):
     r"""`pj.DynamicImpedanceObserver`, paper 000's displacement observer from the transimpedance amplifier output
     `v_out`: $\hat\delta = G(s)[\alpha V_{in} + \beta(Q_\delta + \gamma V_{in})]$, with $G$ the `[dynamics]` table (its
     DC gain included: without it the scale of $\alpha$, $\beta$ would be free). Required: `feedback_resistance`
@@ -421,6 +428,7 @@ class DynamicImpedanceKind(ModelKind):
     0.1 $C_r$). Fitted by default: `gamma` and $G$."""
 
     name = "dynamic_impedance"
+    estimates = ("displacement",)
     keys = ("feedback_resistance", "capacitance", "alpha", "beta", "bias_current", "gamma")
     blocks = ("dynamics",)
     scale_in_dynamics = True
@@ -428,17 +436,6 @@ class DynamicImpedanceKind(ModelKind):
     def parse(self, t, raw, source):
         return _required_numbers(t, ("feedback_resistance", "capacitance", "alpha", "beta"),
                                  {"alpha": {}, "beta": {}, "bias_current": {}, "gamma": {"nonnegative": True}})
-
-    def outputs(self, config):
-        return ("displacement",)
-
-    def inputs(self, config):
-        return ("v_out",)
-
-    def predictor(self, config):
-        from ._predict import observer_predictor
-
-        return observer_predictor(force=False)
 
     def _observer(self, config, dynamics, gamma):
         o = config.model_options
@@ -471,7 +468,7 @@ class DynamicImpedanceKind(ModelKind):
         return () if config.model_options.get("gamma") == 0 else ("gamma",)
 
 
-class SensorLayerKind(ModelKind):
+class SensorLayerKind(_Observer):
     r"""`pj.SensorLayerObserver`, paper 002's smart-stack sensing layer: displacement and force from the sensor
     voltage `v_out` ($V_s$) and the drive `v_in` ($V_a$). Required: `d33` [C/N], `amplifier_capacitance` [F], `k_p`,
     `k_s` [N/m]; optional `crosstalk` $p_c$ (default 0). Fitted by default: `d33` (the force scale $d_{33}/C$),
@@ -483,17 +480,6 @@ class SensorLayerKind(ModelKind):
 
     def parse(self, t, raw, source):
         return _required_numbers(t, ("d33", "amplifier_capacitance", "k_p", "k_s"), {"crosstalk": {}})
-
-    def outputs(self, config):
-        return ("displacement", "force")
-
-    def inputs(self, config):
-        return ("v_out",)
-
-    def predictor(self, config):
-        from ._predict import observer_predictor
-
-        return observer_predictor(force=True)
 
     def records(self, config, dataset):
         return []

@@ -203,24 +203,18 @@ def _at_bound(problem, u) -> np.ndarray:
     import jax.tree_util as jtu
 
     from ._kinds import Negative
-    from ._problem import _free_physical_tree, _is_reparam
+    from ._problem import _free_physical_tree, _is_reparam, _path_string
 
     flags = []
     params = problem.params(u)
     flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
     zero_bounded = (pj.Positive, pj.OrderedPositive, pj.Fractions, Negative)
-    reparam = {_path(p) for p, leaf in flat if isinstance(leaf, zero_bounded)}
+    reparam = {_path_string(p) for p, leaf in flat if isinstance(leaf, zero_bounded)}
     for path, value in _free_physical_tree(params, problem.mask).items():
         a = np.abs(np.ravel(np.asarray(value, dtype=float)))
         top = a.max() if a.size else 0.0
         flags += list((a <= 1e-9 * top) & (path in reparam) & (a.size > 1)) if top > 0 else [False] * a.size
     return np.asarray(flags, dtype=bool)
-
-
-def _path(path) -> str:
-    from ._problem import _path_string
-
-    return _path_string(path)
 
 
 KINK_FTOL = 1e-5
@@ -297,6 +291,17 @@ def _probe_descent(problem, u, cost, r, jtr, jtj) -> tuple[float, bool, Any]:
     return slope, nonfinite, best
 
 
+def max_gradient_cosine(r, jtr, jtj) -> float:
+    """MINPACK's gtol quantity: the largest |cos| between the residual and a Jacobian column (0 for a zero residual
+    or no parameters)."""
+    r, jtr, jtj = (np.asarray(x) for x in (r, jtr, jtj))
+    col_norms = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
+    rnorm = np.sqrt(np.sum(r**2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = np.abs(jtr) / (col_norms * rnorm)
+    return float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
+
+
 def _std_error_status(s) -> str:
     """How to read a standard error in `result.json`, where JSON can hold neither inf nor NaN (both are `null`):
     `"finite"`, `"infinite"` (the data do not determine the parameter) or `"not computed"` (no finite Jacobian)."""
@@ -369,11 +374,7 @@ def summarise(
         se, corr = np.full_like(se, np.nan), np.full_like(corr, np.nan)
         status[:] = "not computed"
     # first-order optimality (MINPACK's gtol test): the largest cosine between the residual and a Jacobian column
-    col_norms = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
-    rnorm = np.sqrt(np.sum(r**2))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cosines = np.abs(jtr) / (col_norms * rnorm)
-    gradient_cosine = float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
+    gradient_cosine = max_gradient_cosine(r, jtr, jtj)
     if success and gradient_cosine > gtol:
         initial = float(history[0]) if history else cost
         if cost <= (1e4 * np.finfo(float).eps) ** 2 * initial:

@@ -18,7 +18,7 @@ import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
 from ._problem import Problem, _linearise, _over_starts
-from ._results import FitResult, descent_point, summarise
+from ._results import FitResult, descent_point, max_gradient_cosine, summarise
 
 
 def set_smoothing(model, smoothing: float):
@@ -332,16 +332,9 @@ _HARD = ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed")
 
 
 def _stationary(problem, u, gtol) -> bool:
-    """MINPACK's gtol test at `u`: the largest cosine between the residual and a Jacobian column is at most `gtol`
-    (or the residual is zero)."""
+    """MINPACK's gtol test at `u` (non-finite linearisations count as stationary: nothing to follow)."""
     r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
-    rnorm = float(np.sqrt(np.sum(r**2)))
-    cols = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
-    if not (rnorm > 0 and np.all(np.isfinite(jtr))):
-        return True
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(jtr) / (cols * rnorm)
-    return not cos.size or float(np.nanmax(cos)) <= gtol
+    return not np.all(np.isfinite(jtr)) or max_gradient_cosine(r, jtr, jtj) <= gtol
 
 
 def _start_verdict(runs, n_levels):
