@@ -257,10 +257,9 @@ class ModelConfig:
 
         **Arguments:**
 
-        - `dataset`: a `fitting.Dataset` to draw initial values from where the file gives none (each block kind's
-          `start`; for PI + Kelvin–Voigt creep in parallel or none + all-pole even-order dynamics, also the joint
-          `fitting.cold_start_actuator`, kept when it is closer to the data). `None`: placeholders of the right
-          shapes (enough for `fitting.load_model(folder, like=...)`).
+        - `dataset`: a `fitting.Dataset` to draw initial values from where the file gives none: the first (closest
+          to the data) of `starts(dataset)`. `None`: placeholders of the right shapes (enough for
+          `fitting.load_model(folder, like=...)`).
         - `require_values`: raise if any parameter a forward simulation needs is not given explicitly.
 
         **Returns:** the reparametrised model (`pj.unwrap` it to use it), each parameter under its kind's constraint
@@ -272,22 +271,30 @@ class ModelConfig:
                 raise PiezojaxValueError(
                     f"{self.source}: forward simulation needs every parameter value; missing: {', '.join(missing)}"
                 )
-        model = self._assemble(None if dataset is None else StartData(self, dataset, use_cold_start=False))
-        if dataset is not None:
-            other = None
-            if self.model_kind.cold_start:
-                # the joint cold start, where the blocks are its family: kept if it is closer to the data; it
-                # failing (a degenerate record) leaves the rule-based start, with a warning
-                try:
-                    data = StartData(self, dataset)
-                    other = self._assemble(data) if data.cold_start() is not None else None
-                except PiezojaxValueError as e:
-                    warnings.warn(f"{self.source}: the data-driven cold start failed ({e}); starting from the simple "
-                                  "rules instead", StartWarning, stacklevel=2)
-            if other is not None and _start_error(other, dataset) < _start_error(model, dataset):
-                model = other
-            model = self.model_kind.start_state(self, model, dataset)
-        return self._constrain(model)
+        if dataset is None:
+            return self._constrain(self._assemble(None))
+        return self.starts(dataset)[0]
+
+    def starts(self, dataset) -> list:
+        """Every data-driven start of the model, the one closest to the data first, each reparametrised as `build`
+        returns it: the kinds' rule-based starts, and, where the blocks allow it, the joint cold start
+        (`fitting.cold_start_actuator`; a PI surrogate for other hysteresis families). Each has the same structure,
+        so they can be fitted together (`fitting.fit(starts[0], ..., starts=starts)`): closest to the data is not
+        always the start that converges best. A cold start that fails (a degenerate record) is left out with a
+        `StartWarning`."""
+        models = [self._assemble(StartData(self, dataset, use_cold_start=False))]
+        if self.model_kind.cold_start:
+            try:
+                data = StartData(self, dataset)
+                if data.cold_start() is not None:
+                    models.append(self._assemble(data))
+            except PiezojaxValueError as e:
+                warnings.warn(f"{self.source}: the data-driven cold start failed ({e}); starting from the simple "
+                              "rules instead", StartWarning, stacklevel=2)
+        models = [self.model_kind.start_state(self, m, dataset) for m in models]
+        if self.model_kind.cold_start and len(models) > 1:
+            models.sort(key=lambda m: _start_error(m, dataset))
+        return [self._constrain(m) for m in models]
 
     def _assemble(self, data: StartData | None):
         blocks = {"hysteresis": None, "creep": None, "dynamics": None}
@@ -477,7 +484,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         if len(smoothing) > MAX_LEVELS:
             raise ft.error(f"at most {MAX_LEVELS} continuation levels, got {len(smoothing)}", "smoothing")
         smoothing = tuple(float(s) for s in smoothing)
-    max_steps = ft.integer("max_steps", 200, minimum=1, maximum=MAX_STEPS)
+    max_steps = ft.integer("max_steps", 500, minimum=1, maximum=MAX_STEPS)
     method = ft.string("method", ("levenberg_marquardt", "trust_region"), "levenberg_marquardt")
     targets = ft.data.get("targets")
     if targets is not None:

@@ -67,14 +67,22 @@ def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     r"""Non-negative least squares $\min_{x \ge 0}\|Ax - b\|$ through the small Gram system.
 
     Columns are equilibrated (they span many decades), $A^\top A = R^\top R$ (Cholesky, with a $10^{-12}$ ridge on
-    the unit diagonal for nearly collinear neighbouring plays), and `scipy.optimize.nnls` runs on
-    $\|Rx - R^{-\top}A^\top b\|$, which differs from $\|Ax - b\|^2$ by a constant. The products use `einsum`
-    (no multithreaded BLAS: on a loaded machine its spinning threads made a 32000 × 66 QR take seconds)."""
+    the unit diagonal for nearly collinear neighbouring plays, raised up to $10^{-6}$ for identical ones), and
+    `scipy.optimize.nnls` runs on $\|Rx - R^{-\top}A^\top b\|$, which differs from $\|Ax - b\|^2$ by a
+    constant. The products use `einsum` (no multithreaded BLAS: on a loaded machine its spinning threads made a
+    32000 × 66 QR take seconds)."""
     norms = np.sqrt(np.einsum("ij,ij->j", a, a))
     norms = np.where(norms > 0, norms, 1.0)
     an = a / norms
-    gram = np.einsum("ij,ik->jk", an, an) + 1e-12 * np.eye(a.shape[1])
-    r = np.linalg.cholesky(gram).T
+    gram = np.einsum("ij,ik->jk", an, an)
+    for ridge in (1e-12, 1e-10, 1e-8, 1e-6):  # identical columns (plays between the levels of held steps)
+        try:
+            r = np.linalg.cholesky(gram + ridge * np.eye(a.shape[1])).T
+            break
+        except np.linalg.LinAlgError:
+            continue
+    else:
+        raise np.linalg.LinAlgError("the design's Gram matrix is not positive definite even with a 1e-6 ridge")
     rhs = scipy.linalg.solve_triangular(r, np.einsum("ij,i->j", an, b), trans="T")
     coef, _ = scipy.optimize.nnls(r, rhs, maxiter=50 * a.shape[1])
     return coef / norms
@@ -216,6 +224,43 @@ def _spectral_pairs(records, order: int):
     return omega, np.full(order // 2, z)
 
 
+def _highpassed(records, cutoff: float):
+    """Each record's `u` and `y` through the same 2nd-order Butterworth high-pass (`cutoff` in Hz), forward and
+    backward (zero phase). Filtering input and output by one LTI filter leaves the dynamics between them unchanged,
+    and removes what the drive estimate gets wrong at low frequency (hysteresis and creep misfit, a sensor offset),
+    which otherwise dominates the regression and hides a resonance that only rings after steps."""
+    out = []
+    for u, y, dt in records:
+        nyq = 0.5 / dt
+        if not 0 < cutoff < 0.5 * nyq or u.size < 32:
+            continue
+        sos = scipy.signal.butter(2, cutoff / nyq, btype="highpass", output="sos")
+        out.append((scipy.signal.sosfiltfilt(sos, u), scipy.signal.sosfiltfilt(sos, y), dt))
+    return out
+
+
+def _dynamics_candidates(records, order: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    r"""Candidate `(label, omega, zeta)` for the dynamics from the drive/output records of one step: the ARX of
+    `_arx_pairs` on the raw records and on records high-passed at $f_s/1000$, $f_s/200$ and $f_s/50$ (see
+    `_highpassed`), then the spectral peak (`_spectral_pairs`). A candidate that fails (an unstable or
+    non-physical estimate) is left out; the caller keeps the one that explains the data best."""
+    dt = records[0][2]
+    out = []
+    for label, recs in [("ARX", records)] + [
+        (f"ARX above {frac / dt:.3g} Hz", _highpassed(records, frac / dt)) for frac in (1e-3, 5e-3, 2e-2)
+    ]:
+        if not recs:
+            continue
+        try:
+            pairs = _arx_pairs(recs, order)
+        except (np.linalg.LinAlgError, ValueError):
+            pairs = None
+        if pairs is not None:
+            out.append((label, *pairs))
+    out.append(("spectral peak", *_spectral_pairs(records, order)))
+    return out
+
+
 # ----------------------------------------------------------------------------------------------------------------
 
 
@@ -259,6 +304,8 @@ def cold_start_actuator(
     creep_order: int,
     dynamics_order: int = 2,
     *,
+    structure: str = "parallel",
+    creep: str = "kelvin_voigt",
     grid_factor: int = 8,
     tau_range: tuple[float, float] | None = None,
     iterations: int = 2,
@@ -269,7 +316,11 @@ def cold_start_actuator(
 
     The model is $\delta = G(s)\big[w_0 V + \sum_{i=1}^{n} w_i P_{r_i}[V] + \sum_{j=1}^{m} L_{\tau_j}[V]/k_j\big]$
     (`structure="parallel"`, `KelvinVoigtCreep(k, tau, k0=None)`, `StableTransferFunction(1.0, omega, zeta)` with
-    unit DC gain, so the static scale sits in the hysteresis and the creep gains). Steps:
+    unit DC gain, so the static scale sits in the hysteresis and the creep gains), or, with `structure="series"`,
+    $\delta = G(s)\big[(1 + \sum_j c_j L_{\tau_j})[H[V]]\big]$ (`KelvinVoigtCreep(1/c, tau, k0=1)`: the creep
+    acts on the hysteresis output, its gains $c_j$ dimensionless; with `creep="lag"` the same response as
+    `pj.LagCreep`, fractions $c_j/(1 + \sum c)$ and the hysteresis scaled by $1 + \sum c$). Every least squares
+    below has a free constant (a sensor offset). Steps:
 
     1. **Dense linear fit.** Non-negative least squares of the displacement on
        $G[V], G[P_{\rho_1}[V]], \dots, G[P_{\rho_{gn}}[V]], G[L_{t_1}[V]], \dots, G[L_{t_{gm}}[V]]$ over all
@@ -283,6 +334,8 @@ def cold_start_actuator(
        are more than `n_plays` (`creep_order`), the lightest run joins its nearest neighbour; each run gives its
        gain-weighted mean position (geometric mean for $\tau$).
     3. **Gains** $w_0, w_i, c_j$ by one non-negative least squares with those $r_i$, $\tau_j$ (through $G$).
+       In series the model is bilinear in $(w, c)$: alternating non-negative least squares from the parallel
+       gains (`_series_gains`).
     4. **Dynamics** by ARX least squares of $\delta$ on the drive $u = \hat{\mathcal H}[V] + \hat{\mathcal C}[V]$,
        $\delta_k = -\sum_{i \le n_G} a_i\delta_{k-i} + \sum_{i \le n_G} b_i u_{k-i}$ (the ZOH-sampled all-pole
        $G$ is strictly proper), pooled over the records of the most common $dt$ and refined by Steiglitz–McBride
@@ -291,7 +344,10 @@ def cold_start_actuator(
        $\zeta = -\mathrm{Re}\,s/|s|$, two real poles $p, q < 0$ to $\omega = \sqrt{pq}$,
        $\zeta = -(p + q)/(2\omega) \ge 1$. **Fallback** when a pole is unstable or on the negative real axis: the
        peak of the empirical frequency response $S_{uy}/S_{uu}$ (Welch), with $\zeta = 1/(2|H|_{peak})$ clipped to
-       $[0.02, 1]$.
+       $[0.02, 1]$. The same regression also runs on drive and displacement high-passed at $f_s/1000$,
+       $f_s/200$ and $f_s/50$ (one LTI filter on both leaves $G$ unchanged and removes the low-frequency misfit of
+       the drive, which otherwise hides a resonance that only rings after steps); of these candidates the one
+       whose $G$ explains the displacement best is kept.
     5. Steps 1–4 are repeated `iterations` times with the new $G$ (the first pass, without dynamics, mistakes
        resonant ringing for creep and hysteresis; the ARX of step 4 still finds the resonance from that rough
        drive), then step 3 once more with the final $G$.
@@ -312,6 +368,8 @@ def cold_start_actuator(
     - `n_plays`: number of play operators ($\ge 1$).
     - `creep_order`: number of Kelvin–Voigt lags ($\ge 0$; 0: no creep block).
     - `dynamics_order`: order of $G$, even ($\ge 0$; 0: no dynamics block).
+    - `structure`: `"parallel"` (creep driven by the voltage, beside the hysteresis) or `"series"` (after it).
+    - `creep`: `"kelvin_voigt"` or `"lag"` (`pj.LagCreep`, series only).
     - `grid_factor`: dense grid sizes are `grid_factor` times the number of plays / lags.
     - `tau_range`: `(tau_min, tau_max)` of the time-constant grid [s].
     - `iterations`: further passes of steps 1–4 through the identified dynamics.
@@ -336,6 +394,12 @@ def cold_start_actuator(
         raise PiezojaxValueError(
             f"`dynamics_order` must be even (pole pairs; two real poles are an overdamped pair), got {dynamics_order}"
         )
+    if structure not in ("parallel", "series"):
+        raise PiezojaxValueError(f"`structure` must be 'parallel' or 'series', got {structure!r}")
+    if creep not in ("kelvin_voigt", "lag"):
+        raise PiezojaxValueError(f"`creep` must be 'kelvin_voigt' or 'lag', got {creep!r}")
+    if creep == "lag" and structure != "series":
+        raise PiezojaxValueError("`creep='lag'` is DC-normalised: it needs `structure='series'`")
     if not (isinstance(iterations, int) and iterations >= 0):
         raise PiezojaxValueError(f"`iterations` must be an integer >= 0, got {iterations!r}")
     if not (isinstance(grid_factor, int) and grid_factor >= 1):
@@ -353,6 +417,7 @@ def cold_start_actuator(
         raise PiezojaxValueError(f"`tau_range` must be (tau_min, tau_max) with 0 < tau_min < tau_max, got {tau_range}")
 
     npairs = dynamics_order // 2
+    series = structure == "series" and creep_order > 0
     dt_counts: dict[float, int] = {}
     for v, _, dt in recs:
         dt_counts[dt] = dt_counts.get(dt, 0) + v.size
@@ -366,53 +431,136 @@ def cold_start_actuator(
     tau_grid = np.geomspace(tau_lo, tau_hi, grid_factor * creep_order) if creep_order else np.zeros(0)
     dense_raw = [_design(v, dt, r_grid, tau_grid) for v, _, dt in recs]
 
+    def gains(raw, omega, zeta):
+        return _nnls_offset(_through(raw, recs, omega, zeta), y_all)
+
     omega = zeta = None
     for it in range(1 + (iterations if npairs else 0)):
         # 1.-2. dense non-negative fit through the current dynamics, clustered into thresholds and time constants
-        dense = _nnls(_through(dense_raw, recs, omega, zeta), y_all)
+        dense = gains(dense_raw, omega, zeta)
         thresholds = _clusters(dense[1 : 1 + n_grid], r_grid, n_plays, min_weight_fraction, log=False)
         thresholds = _strictly_ascending(thresholds, r_grid[0])
         c_dense = dense[1 + n_grid :]
         taus = _clusters(c_dense, tau_grid, creep_order, min_weight_fraction, log=True) if creep_order else tau_grid
-        # 3. the compact linear fit
+        # 3. the compact linear fit (parallel), then the series gains from it
         compact_raw = [_design(v, dt, thresholds, taus) for v, _, dt in recs]
-        coef = _nnls(_through(compact_raw, recs, omega, zeta), y_all)
+        coef = gains(compact_raw, omega, zeta)
+        w, c = coef[: 1 + n_plays], coef[1 + n_plays :]
+        if series:
+            w, c = _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays)
         if not npairs:
             break
-        # 4. ARX of the displacement on the drive u = H[V] + C[V]
-        pairs = [(a @ coef, y, dt) for a, (_, y, dt), ok in zip(compact_raw, recs, is_arx) if ok]
-        omega, zeta = _arx_pairs(pairs, dynamics_order) or _spectral_pairs(pairs, dynamics_order)
+        # 4. the dynamics from the drive u = H[V] + C[V] (parallel) or (1 + C)[H[V]] (series): the candidate that
+        # explains the displacement best
+        drives = [_drive(a, dt, taus, w, c, series, n_plays) for a, (_, _, dt) in zip(compact_raw, recs)]
+        pairs = [(u, y, dt) for u, (_, y, dt), ok in zip(drives, recs, is_arx) if ok]
+        omega, zeta = _best_dynamics(_dynamics_candidates(pairs, dynamics_order), drives, recs, y_all)
     if npairs:  # 5. final gains through the final dynamics
-        coef = _nnls(_through(compact_raw, recs, omega, zeta), y_all)
+        coef = gains(compact_raw, omega, zeta)
+        w, c = coef[: 1 + n_plays], coef[1 + n_plays :]
+        if series:
+            w, c = _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays)
 
     # strictly positive gains, so that the Positive reparametrisation can start from them; the floor is relative to
     # the data's own scale (|y| per volt), so that a fit that put no weight on the hysteresis still gives finite
     # creep stiffnesses (their inverses)
     scale = float(np.max(np.abs(y_all))) / vmax if vmax > 0 else 1.0
-    top = max(float(np.max(coef[: 1 + n_plays])), 1e-6 * scale, np.finfo(float).tiny)
-    w0 = max(float(coef[0]), 1e-3 * top)
-    weights = np.maximum(coef[1 : 1 + n_plays], 1e-3 * top)
-    gains = coef[1 + n_plays :]
+    top = max(float(np.max(w)), 1e-6 * scale, np.finfo(float).tiny)
+    w0 = max(float(w[0]), 1e-3 * top)
+    weights = np.maximum(w[1:], 1e-3 * top)
     if creep_order:
-        gains = np.maximum(gains, 1e-3 * max(float(np.max(gains)), 1e-3 * top))
+        # series gains are dimensionless (relative to the instantaneous response), parallel ones in output/volt
+        c = np.maximum(c, 1e-3 * max(float(np.max(c)), 1e-3 * (1.0 if series else top)))
 
     f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
+    if creep_order and creep == "lag":
+        # (1 + sum c_j L_j) h = (1 - sum a_j + sum a_j L_j)(1 + sum c) h with a_j = c_j / (1 + sum c)
+        total = 1.0 + float(np.sum(c))
+        w0, weights = w0 * total, weights * total
+        creep_block = pj.LagCreep(f64(c / total), f64(taus))
+    elif creep_order:
+        creep_block = pj.KelvinVoigtCreep(f64(1.0 / c), f64(taus), k0=f64(1.0) if series else None)
+    else:
+        creep_block = None
     hyst = pj.PrandtlIshlinskii(f64(weights), f64(thresholds), w0=f64(w0))
-    creep = pj.KelvinVoigtCreep(f64(1.0 / gains), f64(taus), k0=None) if creep_order else None
     dyn = pj.StableTransferFunction(f64(1.0), omega=f64(omega), zeta=f64(zeta)) if npairs else None
-    model = pj.Actuator(hyst, creep, dyn)
+    model = pj.Actuator(hyst, creep_block, dyn, structure="series" if series else "parallel")
     if not constrained:
         return model
     model = pj.constrain(model, lambda m: m.hysteresis.weights, pj.Positive)
     model = pj.constrain(model, lambda m: m.hysteresis.w0, pj.Positive)
     model = pj.constrain(model, lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
-    if creep_order:
+    if creep_order and creep == "lag":
+        model = pj.constrain(model, lambda m: m.creep.fractions, pj.Fractions)
+        model = pj.constrain(model, lambda m: m.creep.time_constants, pj.Positive)
+    elif creep_order:
         model = pj.constrain(model, lambda m: m.creep.stiffnesses, pj.Positive)
         model = pj.constrain(model, lambda m: m.creep.time_constants, pj.Positive)
     if npairs:
         model = pj.constrain(model, lambda m: m.dynamics.omega, pj.Positive)
         model = pj.constrain(model, lambda m: m.dynamics.zeta, pj.Positive)
     return model
+
+
+def _nnls_offset(a: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """`_nnls` with a free constant (a sensor offset, either sign) beside the non-negative columns, eliminated by
+    removing every column's mean and the data's; returns the columns' coefficients."""
+    return _nnls(a - np.mean(a, axis=0), y - np.mean(y))
+
+
+def _drive(design: np.ndarray, dt: float, taus: np.ndarray, w: np.ndarray, c: np.ndarray, series: bool,
+           n_plays: int) -> np.ndarray:
+    """The input of the dynamics for one record: $H[V] + \\sum_j c_j L_j[V]$ (parallel) or
+    $(1 + \\sum_j c_j L_j)[H[V]]$ (series), `design` its `[V, P_r[V], L_tau[V]]` columns."""
+    h = design[:, : 1 + n_plays] @ w
+    if not series:
+        return h + design[:, 1 + n_plays :] @ c
+    return h + _lag_columns(h, dt, taus) @ c
+
+
+def _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays, sweeps: int = 4):
+    r"""Hysteresis weights $w$ and dimensionless series creep gains $c_j$ of
+    $\delta = G\big[(1 + \sum_j c_j L_{\tau_j})[H_w[V]]\big]$, bilinear in $(w, c)$: alternating non-negative
+    least squares, $w$ for fixed $c$ (the columns $(1 + \sum c_j L_j)[P_{r_i}[V]]$), then $(a, a c)$ for fixed
+    $w$ (the columns $H_w[V]$, $L_j[H_w[V]]$; $a$ rescales $w$). It starts from the parallel fit's
+    $w$ and $c_j = c^{par}_j / g$, $g$ the chord slope of $H_w[V]$ against $V$ (the creep on $V$ read as creep on
+    $H \approx g V$)."""
+    hyst = [a[:, : 1 + n_plays] for a in compact_raw]
+    v_all = np.concatenate([a[:, 0] for a in compact_raw])
+    h_all = np.concatenate([h @ w for h in hyst])
+    g = float(np.dot(v_all, h_all) / max(np.dot(v_all, v_all), np.finfo(float).tiny))
+    c = np.maximum(c / g, 0.0) if g > 0 else np.full(taus.size, 0.05)
+    for _ in range(sweeps):
+        cols = [h + np.stack([_lag_columns(h[:, i], dt, taus) @ c for i in range(h.shape[1])], axis=1)
+                for h, (_, _, dt) in zip(hyst, recs)]
+        w_new = _nnls_offset(_through(cols, recs, omega, zeta), y_all)
+        if not np.any(w_new > 0):
+            break
+        w = w_new
+        hs = [h @ w for h in hyst]
+        cols = [np.column_stack([hh, _lag_columns(hh, dt, taus)]) for hh, (_, _, dt) in zip(hs, recs)]
+        coef = _nnls_offset(_through(cols, recs, omega, zeta), y_all)
+        if not coef[0] > 0:
+            break
+        w, c = w * coef[0], coef[1:] / coef[0]
+    return w, c
+
+
+def _best_dynamics(candidates, drives, recs, y_all):
+    """The candidate `(omega, zeta)` whose dynamics, applied to the drive (with a free scale and offset), leave the
+    smallest residual of the displacement."""
+    best, best_err = None, np.inf
+    for _, omega, zeta in candidates:
+        try:
+            out = _through([u[:, None] for u in drives], recs, omega, zeta)[:, 0]
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        a = np.column_stack([out, np.ones_like(out)])
+        coef = np.linalg.lstsq(a, y_all, rcond=None)[0]
+        err = float(np.sum((y_all - a @ coef) ** 2))
+        if np.isfinite(err) and err < best_err:
+            best, best_err = (omega, zeta), err
+    return best if best is not None else candidates[-1][1:]
 
 
 def cold_start_free(model) -> list[str]:

@@ -27,6 +27,7 @@ The whole model (which blocks it has, its state and outputs) is a `ModelKind`: `
 """
 
 import math
+import warnings
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -49,6 +50,8 @@ MAX_POLYNOMIAL = 6
 DYNAMICS_ORDERS = (0, 1, 2, 3, 4, 5, 6, 7, 8)
 
 TINY = np.finfo(float).tiny
+# plays of the PI surrogate that starts creep and dynamics jointly when the hysteresis is of another family
+SURROGATE_PLAYS = 10
 
 
 def finite_number(x) -> bool:
@@ -262,14 +265,20 @@ class StartData:
 
     def cold_start(self):
         """`fitting.cold_start_actuator`'s joint start of every block, when each configured block is in its family
-        (each kind's `cold_start_args`), else `None`. Computed once."""
+        (each kind's `cold_start_args`; a hysteresis kind outside it is replaced by a PI surrogate of
+        `SURROGATE_PLAYS` plays), else `None`. Computed once."""
         if self._cold is None:
             self._cold = False
             cfg = self.config
             if self.dataset is not None and cfg.model_kind.cold_start:
                 args = {}
                 for table in ("hysteresis", "creep", "dynamics"):
-                    a = cfg.kind(table).cold_start_args(cfg.options(table), cfg)
+                    kind = cfg.kind(table)
+                    a = kind.cold_start_args(cfg.options(table), cfg)
+                    if a is None and table == "hysteresis" and not kind.empty:
+                        # another hysteresis family: a PI surrogate carries the joint start of creep and dynamics,
+                        # and the hysteresis kind starts from the surrogate's output (`for_table`)
+                        a = {"n_plays": SURROGATE_PLAYS}
                     if a is None:
                         return None
                     args.update(a)
@@ -279,8 +288,27 @@ class StartData:
 
                     self._cold = pj.unwrap(cold_start_actuator(
                         ds, args["n_plays"], args.get("creep_order", 0), args.get("dynamics_order", 0),
+                        structure=args.get("structure", "parallel"), creep=args.get("creep", "kelvin_voigt"),
                         constrained=False))
         return self._cold if self._cold is not False else None
+
+    def for_table(self, table: str) -> "StartData":
+        """The data a block kind of `table` starts from: with a joint cold start, a hysteresis kind sees the cold
+        start's hysteresis output as its records (free of creep, dynamics, offset and noise), every other table
+        the data themselves."""
+        cold = self.cold_start()
+        if table != "hysteresis" or cold is None or cold.hysteresis is None:
+            return self
+        recs = self.records()
+        view = StartData(self.config, self.dataset, use_cold_start=False)
+        view._records = [(v, np.asarray(_hysteresis_output(cold.hysteresis, jnp.asarray(v))), dt)
+                         for v, _, dt in recs]
+        return view
+
+
+@jax.jit
+def _hysteresis_output(hysteresis, v):
+    return hysteresis(v)
 
 
 # ------------------------------------------------------------------------------------------------ block kinds
@@ -344,8 +372,9 @@ class BlockKind:
         return self.parameters(o)
 
     def cold_start_args(self, o: dict, config) -> dict | None:
-        """Arguments of `fitting.cold_start_actuator` when this block is in its family (PI hysteresis, Kelvin–Voigt
-        creep in parallel or none, even-order all-pole dynamics), else `None`."""
+        """Arguments of `fitting.cold_start_actuator` when this block is in its family (PI hysteresis — another
+        hysteresis kind gets a PI surrogate —, Kelvin–Voigt creep in series or parallel, lag creep, none, even-order
+        all-pole dynamics), else `None`."""
         return None
 
     def from_cold_start(self, o: dict, block) -> dict | None:
@@ -377,9 +406,27 @@ class BlockKind:
                 if cold is not None:
                     made = self.from_cold_start(o, getattr(cold, self.table))
                 if made is None:
-                    made = self.start(o, data)
+                    made = self._safe_start(o, data.for_table(self.table))
             out = {k: (made[k] if out[k] is None else out[k]) for k in names}
         return out
+
+
+    def _safe_start(self, o: dict, data: StartData) -> dict:
+        """`start`, or, when it fails on usable data, the placeholder values with a `StartWarning` (a start must not
+        end the run: the fit may still get there)."""
+        data.records()  # unusable data (no displacement, zero voltage) is the user's error, raised as such
+        try:
+            made = self.start(o, data)
+            bad = [k for k, x in made.items() if not np.all(np.isfinite(np.asarray(x, float)))]
+            if bad:
+                raise FloatingPointError(f"non-finite {', '.join(bad)}")
+            return made
+        except Exception as e:  # noqa: BLE001 - any failure of a heuristic falls back to the placeholder
+            from ._config import StartWarning
+
+            warnings.warn(f"[{self.table}] {self.name}: the data-driven start failed ({type(e).__name__}: {e}); "
+                          "starting from the placeholder values", StartWarning, stacklevel=3)
+            return self.placeholder(o)
 
 
 _KINDS: dict[tuple[str, str], BlockKind] = {}
@@ -512,16 +559,29 @@ class BoucWenKind(BlockKind):
         return {"A": 0.1, "beta": 0.01, "gamma": 0.01, "n": 1.0, "d": 1.0}
 
     def start(self, o, data):
+        r"""For $n = 1$ and $z = A\hat z$, $d\hat z = dv - \beta|dv|\hat z - \gamma\,dv|\hat z|$ does not depend
+        on $A$, and $y = d\,v - A\hat z$ is linear in $(d, A)$: a grid of $(\beta, \gamma/\beta)$ (saturation
+        after 0.1 to 30 times the voltage span; $\gamma/\beta$ from -0.8 to 0.9, inside the bounded class), each
+        with $(d, A)$ and an offset by linear least squares; the best with $A > 0$."""
         recs = data.records()
-        v, y = data.inputs(), data.outputs()
-        a = chord(v, y)
-        A = max(0.2 * abs(a), TINY)
-        z_max = 0.05 * float(np.ptp(y)) / abs(a) * A if np.ptp(y) > 0 else A
-        beta = A / (2 * max(z_max, TINY))
-        bw = pj.BoucWen(A, beta, beta, output="z")
-        z = np.concatenate([np.asarray(bw(jnp.asarray(vv))) for vv, _, _ in recs])
-        d = float(np.dot(v, y + z) / np.dot(v, v))
-        return {"A": A, "beta": beta, "gamma": beta, "n": 1.0, "d": d}
+        span = max(float(np.ptp(v)) for v, _, _ in recs) or data.max_input()
+        betas, ratios = np.geomspace(0.1, 30.0, 12) / span, np.linspace(-0.8, 0.9, 8)
+        bb, rr = (x.ravel() for x in np.meshgrid(betas, ratios))
+        zs = [np.asarray(_bouc_wen_grid(jnp.asarray(bb), jnp.asarray(bb * rr), jnp.asarray(v))) for v, _, _ in recs]
+        v_all, y_all = data.inputs(), data.outputs()
+        best, best_err = None, np.inf
+        for i in range(bb.size):
+            z = np.concatenate([zz[i] for zz in zs])
+            a = np.column_stack([v_all, -z, np.ones_like(v_all)])
+            coef, *_ = np.linalg.lstsq(a, y_all, rcond=None)
+            err = float(np.sum((y_all - a @ coef) ** 2))
+            if coef[1] > 0 and np.isfinite(err) and err < best_err:
+                best, best_err = (float(coef[1]), bb[i], bb[i] * rr[i], float(coef[0])), err
+        if best is None:  # no loop in the data: a nearly linear element
+            d = chord(v_all, y_all)
+            best = (max(1e-3 * abs(d), TINY), 1.0 / span, 0.0, d)
+        A, beta, gamma, d = best
+        return {"A": A, "beta": beta, "gamma": gamma, "n": 1.0, "d": d}
 
     def optional_start(self, o, data):
         return self.placeholder(o)  # n = 1, the usual Bouc–Wen choice
@@ -539,6 +599,12 @@ class BoucWenKind(BlockKind):
 
     def cost(self, o):
         return max(1, o["substeps"] // 4)
+
+
+@jax.jit
+def _bouc_wen_grid(beta, gamma, v):
+    r"""$\hat z$ of a unit-$A$ Bouc–Wen operator ($n = 1$, closed form) for each `(beta, gamma)` pair."""
+    return jax.vmap(lambda b, g: pj.BoucWen(1.0, b, g, output="z")(v))(beta, gamma)
 
 
 class MaxwellSlipKind(BlockKind):
@@ -640,7 +706,10 @@ class NoCreep(_NoBlock):
 
 
 def _creep_gain(data: StartData) -> float:
-    return 1.0 if data.unit_drive else data.static_gain()
+    """The creep's scale: 1 where it acts on a signal in the output's units (in series after the hysteresis, or on
+    the voltage ahead of the dynamics' gain), else the static gain from volts to the output."""
+    series = data.config.creep_structure == "series" and not data.config.hysteresis_kind.empty
+    return 1.0 if data.unit_drive or series else data.static_gain()
 
 
 class KelvinVoigtKind(BlockKind):
@@ -677,7 +746,7 @@ class KelvinVoigtKind(BlockKind):
         return {"stiffnesses": pj.Positive, "time_constants": pj.Positive}
 
     def cold_start_args(self, o, config):
-        return {"creep_order": o["order"]} if config.creep_structure == "parallel" else None
+        return {"creep_order": o["order"], "structure": config.creep_structure}
 
     def from_cold_start(self, o, block):
         if block is None:
@@ -754,6 +823,14 @@ class LagKind(BlockKind):
 
     def build(self, o, v, config):
         return pj.LagCreep(f64(v["fractions"]), f64(v["time_constants"]))
+
+    def cold_start_args(self, o, config):
+        return {"creep_order": o["lags"], "structure": "series", "creep": "lag"}
+
+    def from_cold_start(self, o, block):
+        if block is None:
+            return None
+        return {"fractions": np.asarray(block.fractions), "time_constants": np.asarray(block.time_constants)}
 
     def constraints(self, o):
         return {"fractions": pj.Fractions, "time_constants": pj.Positive}

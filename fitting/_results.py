@@ -222,6 +222,14 @@ KINK_FTOL = 1e-5
 it no longer decreases in practice: it is converged (`"converged_at_kink"`) whatever the probed slopes."""
 
 
+def kink_ftol(m: int, p: int) -> float:
+    r"""The relative cost decrease below which a restart past a kink counts as no decrease: `KINK_FTOL`, or, when
+    larger, $1/(m - p)$ — moving one parameter by one standard error changes the cost
+    $\tfrac12\sum r^2$ by $\hat\sigma^2/2 = \text{cost}/(m - p)$, so a smaller gain is below what the data can
+    resolve."""
+    return max(KINK_FTOL, 1.0 / max(m - p, 1))
+
+
 def descent_point(problem, u, gtol: float = 1e-2):
     """A point of lower cost than `u` past a kink that stopped the steps: from the lowest-cost probe of
     `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when no probe lowers
@@ -393,10 +401,11 @@ def summarise(
                           f"{gtol:g} from one side's derivative, but the cost rises along ± each parameter, the "
                           f"gradient and the Gauss–Newton direction: steepest one-sided slope {slope:+.1e} in gtol's "
                           "units; the exact, piecewise smooth model is not differentiable there)")
-            elif kink_gain is not None and kink_gain < KINK_FTOL and not nonfinite:
+            elif kink_gain is not None and kink_gain < kink_ftol(m, p) and not nonfinite:
                 code = "converged_at_kink"
                 reason = (f"converged: the cost no longer decreases (the last restart past a kink lowered it by "
-                          f"{kink_gain:.1e} of it, below {KINK_FTOL:g}), although it still falls along a probed "
+                          f"{kink_gain:.1e} of it, below {kink_ftol(m, p):.1e}: less than moving one parameter by "
+                          f"one standard error changes it), although it still falls along a probed "
                           f"direction at a one-sided slope of {slope:+.1e} in gtol's units (gtol = {gtol:g}): the "
                           "kinks of the exact, piecewise smooth model stop every step within a short distance")
             else:

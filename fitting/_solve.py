@@ -360,7 +360,7 @@ def solve(
     progress: bool = True,
     throw: bool = False,
     gtol: float = 1e-2,
-    kink_restarts: int = 3,
+    kink_restarts: int = 5,
     method: str = "levenberg_marquardt",
 ) -> FitResult:
     r"""Solve a `Problem` by Levenberg–Marquardt (`optimistix.LevenbergMarquardt`) from its initial model.
@@ -378,8 +378,9 @@ def solve(
     - `problem`: a `Problem`.
     - `starts`: optional multi-start: a sequence of models with the structure of the problem's model (e.g. cold
       starts, or perturbations of the initial model), fitted at once under `jax.vmap` (lockstep; each start keeps
-      its own damping and verdict). The result is the start with the lowest final cost among those that converged
-      (among all if none did); `result.starts` lists every start's cost and verdict. `None`: the problem's model.
+      its own damping and verdict). The result is the start with the lowest final cost, with its verdict (a start
+      that failed hard — non-finite, interrupted — only when all did); `result.starts` lists every start's cost and
+      verdict. `None`: the problem's model.
       Memory and time per step grow with the number of starts.
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
@@ -404,7 +405,8 @@ def solve(
     - `kink_restarts`: where a start's steps stop although a probed direction lowers the cost (a joint step keeps
       crossing a kink of the exact operators), the fit moves to the lowest probed point and iterates again, at most
       this many times (0: never). Each restart costs about `4 p + 4` residual evaluations and a new iteration.
-      When the last restart lowered the cost by less than `fitting._results.KINK_FTOL` (1e-5) of it, the cost no
+      When the last restart lowered the cost by less than `fitting._results.kink_ftol` of it (1e-5, or
+      $1/(m - p)$ when larger: less than a one-standard-error change of a parameter would), the cost no
       longer decreases in practice (the exact operators' kinks are dense: each step ends at the next one) and the
       fit is converged (`"converged_at_kink"`, with both numbers in the reason).
     - `throw`: raise `RuntimeError` with the reason when the fit fails, instead of returning a failed result.
@@ -488,8 +490,9 @@ def solve(
     seconds = time.perf_counter() - t0
     verdicts = [_start_verdict(runs, len(levels)) for runs in per_start]
     costs = np.array([runs[-1][1].history[-1] for runs in per_start])
-    order = np.lexsort((np.where(np.isfinite(costs), costs, np.inf), [not v[0] for v in verdicts]))
-    best = int(order[0])  # the lowest cost among the successful starts (among all if none succeeded)
+    hard = [v[2] in _HARD for v in verdicts]
+    order = np.lexsort(([not v[0] for v in verdicts], np.where(np.isfinite(costs), costs, np.inf), hard))
+    best = int(order[0])  # the lowest cost (a start stopped by max_steps below a converged one fits better)
     runs = per_start[best]
     success, reason, code = verdicts[best]
     result = summarise(

@@ -52,7 +52,7 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
   [fit]         free = ["hysteresis", "creep.time_constants", ...] (default: every identifiable parameter)
                 weights = "range" | "noise" | {displacement = 1e6, force = 1e3}
                 smoothing = [0.05, 0.0]   (continuation: relaxed, then exact hysteresis)
-                max_steps = 200;  targets = ["displacement", ...] (default: predicted channels in the data)
+                max_steps = 500;  targets = ["displacement", ...] (default: predicted channels in the data)
                 method = "levenberg_marquardt" | "trust_region"   (scipy's TRF algorithm; see fitting.solve)
 
   [data]        units = {displacement = "um", v_in = "mV", t = "ms"}   (columns not in SI; also --units)
@@ -61,7 +61,8 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
 
 Sizes: plays, elements <= 100; Preisach levels <= 30; creep order, lags <= 10; Bouc-Wen substeps <= 64;
 max_steps <= 100000.
-Parameter values not given in CONFIG start from the data (`fit`), see the README ("Command line").
+Parameter values not given in CONFIG start from the data (`fit`: the joint cold start and simple rules, both fitted
+together, the lower cost kept), see the README ("Command line").
 Data files: .csv (header naming t, v_in and any of v_out, displacement, force, charge, current), .npz, .h5/.hdf5,
 .mat with the same names; SI units unless declared; uniform t in seconds.
 """
@@ -489,6 +490,10 @@ def _check_fit_data(dataset, targets) -> None:
         raise _error("column 'v_in' is zero in every data file: no model can be identified from no excitation")
 
 
+# the data-driven starts are fitted together (under vmap) only while they need no more than this
+MULTI_START_MEMORY = 2 * 2**30
+
+
 def _memory_estimate(config, dataset, num_free: int) -> int:
     """Bytes the fit is expected to need at its peak: one record's forward-mode Jacobian with its intermediates
     (the solver forms it one record at a time on CPU), times the Bouc–Wen RK4 substeps."""
@@ -563,16 +568,26 @@ def _cmd_fit(args) -> int:
         _info("initial values from the data", quiet)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", StartWarning)
-            params = config.build(dataset)
+            starts = config.starts(dataset)
         start_warnings = [str(w.message) for w in caught if issubclass(w.category, StartWarning)]
         for m in start_warnings:
             _info(f"warning: {m}")
         max_steps = args.max_steps if args.max_steps is not None else config.max_steps
         what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
         _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
+        if len(starts) > 1:
+            need, have = len(starts) * _memory_estimate(config, dataset, _num_free(starts[0], free)), _physical_memory()
+            if need > MULTI_START_MEMORY or (have is not None and need > 0.5 * have):
+                _info(f"fitting only the start closest to the data: {len(starts)} starts together would need about "
+                      f"{need / 2**30:.1f} GiB", quiet)
+                starts = starts[:1]
+            else:
+                _info(f"{len(starts)} starts (rule-based and joint cold start) fitted together; the best is kept",
+                      quiet)
         result = fitting.fit(
-            params, dataset, predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
+            starts[0], dataset, predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
             smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method,
+            starts=starts if len(starts) > 1 else None,
         )
         if result.code == "interrupted":
             _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
