@@ -10,11 +10,21 @@ Only argparse and the standard library are imported at module level: the signal 
 JAX is loaded, so an interrupt during the imports is handled like any other.
 """
 
+import signal
+import sys
+
+if __name__ == "__main__" or sys.argv[0].rsplit("/", 1)[-1] == "piezojax":
+    # run as the program: a signal during the imports below (before `main` installs its handlers) ends the process
+    # with the status of an interrupt before anything is written, not with a traceback
+    def _signal_while_importing(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGINT, _signal_while_importing)
+    signal.signal(signal.SIGTERM, _signal_while_importing)
+
 import argparse
 import contextlib
 import os
-import signal
-import sys
 import threading
 import warnings
 from pathlib import Path
