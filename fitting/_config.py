@@ -175,9 +175,6 @@ class ModelConfig:
         """Where a block's parameters are: `hysteresis.hysteresis` for the operator inside an output polynomial."""
         return "hysteresis.hysteresis" if table == "hysteresis" and self.polynomial else table
 
-    def _operator_path(self) -> str:
-        return self._block_path("hysteresis")
-
     def _block_tables(self) -> tuple[str, ...]:
         return self.model_kind.blocks
 
@@ -411,7 +408,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     kinds, opts = {}, {}
     for table in ("hysteresis", "creep", "dynamics"):
         if table not in mkind.blocks:  # a block the model does not have
-            kinds[table] = DEFAULT_KIND[table] if table != "dynamics" else "transfer_function"
+            kinds[table] = DEFAULT_KIND[table]
             opts[table] = {"order": 0, "zero_pairs": 0, "real_zeros": 0} if table == "dynamics" else {}
             continue
         data = raw.get(table, {"kind": DEFAULT_KIND[table]} if table != "dynamics" else {"order": 0})

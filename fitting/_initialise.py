@@ -434,6 +434,14 @@ def cold_start_actuator(
     def gains(raw, omega, zeta):
         return _nnls_offset(_through(raw, recs, omega, zeta), y_all)
 
+    def compact_gains(compact_raw, taus, omega, zeta):
+        """`(w, c)` of the compact design: parallel least squares, then the series gains from it."""
+        coef = gains(compact_raw, omega, zeta)
+        w, c = coef[: 1 + n_plays], coef[1 + n_plays :]
+        if series:
+            w, c = _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays)
+        return w, c
+
     omega = zeta = None
     for it in range(1 + (iterations if npairs else 0)):
         # 1.-2. dense non-negative fit through the current dynamics, clustered into thresholds and time constants
@@ -444,10 +452,7 @@ def cold_start_actuator(
         taus = _clusters(c_dense, tau_grid, creep_order, min_weight_fraction, log=True) if creep_order else tau_grid
         # 3. the compact linear fit (parallel), then the series gains from it
         compact_raw = [_design(v, dt, thresholds, taus) for v, _, dt in recs]
-        coef = gains(compact_raw, omega, zeta)
-        w, c = coef[: 1 + n_plays], coef[1 + n_plays :]
-        if series:
-            w, c = _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays)
+        w, c = compact_gains(compact_raw, taus, omega, zeta)
         if not npairs:
             break
         # 4. the dynamics from the drive u = H[V] + C[V] (parallel) or (1 + C)[H[V]] (series): the candidate that
@@ -456,10 +461,7 @@ def cold_start_actuator(
         pairs = [(u, y, dt) for u, (_, y, dt), ok in zip(drives, recs, is_arx) if ok]
         omega, zeta = _best_dynamics(_dynamics_candidates(pairs, dynamics_order), drives, recs, y_all)
     if npairs:  # 5. final gains through the final dynamics
-        coef = gains(compact_raw, omega, zeta)
-        w, c = coef[: 1 + n_plays], coef[1 + n_plays :]
-        if series:
-            w, c = _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays)
+        w, c = compact_gains(compact_raw, taus, omega, zeta)
 
     # strictly positive gains, so that the Positive reparametrisation can start from them; the floor is relative to
     # the data's own scale (|y| per volt), so that a fit that put no weight on the hysteresis still gives finite
@@ -530,9 +532,10 @@ def _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays, sw
     h_all = np.concatenate([h @ w for h in hyst])
     g = float(np.dot(v_all, h_all) / max(np.dot(v_all, v_all), np.finfo(float).tiny))
     c = np.maximum(c / g, 0.0) if g > 0 else np.full(taus.size, 0.05)
+    # the lags of each design column do not change between sweeps
+    lags = [[_lag_columns(h[:, i], dt, taus) for i in range(h.shape[1])] for h, (_, _, dt) in zip(hyst, recs)]
     for _ in range(sweeps):
-        cols = [h + np.stack([_lag_columns(h[:, i], dt, taus) @ c for i in range(h.shape[1])], axis=1)
-                for h, (_, _, dt) in zip(hyst, recs)]
+        cols = [h + np.stack([lag @ c for lag in lag_h], axis=1) for h, lag_h in zip(hyst, lags)]
         w_new = _nnls_offset(_through(cols, recs, omega, zeta), y_all)
         if not np.any(w_new > 0):
             break

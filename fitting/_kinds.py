@@ -286,10 +286,10 @@ class StartData:
                 if ds and args.get("n_plays"):
                     from ._initialise import cold_start_actuator
 
-                    self._cold = pj.unwrap(cold_start_actuator(
+                    self._cold = cold_start_actuator(
                         ds, args["n_plays"], args.get("creep_order", 0), args.get("dynamics_order", 0),
                         structure=args.get("structure", "parallel"), creep=args.get("creep", "kelvin_voigt"),
-                        constrained=False))
+                        constrained=False)
         return self._cold if self._cold is not False else None
 
     def for_table(self, table: str) -> "StartData":

@@ -232,9 +232,11 @@ def kink_ftol(m: int, p: int) -> float:
 
 def descent_point(problem, u, gtol: float = 1e-2):
     """A point of lower cost than `u` past a kink that stopped the steps: from the lowest-cost probe of
-    `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when no probe lowers
-    the cost."""
+    `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when `u` passes the
+    gtol test (or its linearisation is not finite: nothing to follow) or no probe lowers the cost."""
     r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
+    if not np.all(np.isfinite(jtr)) or max_gradient_cosine(r, jtr, jtj) <= gtol:
+        return None  # stationary by MINPACK's gtol test
     cost = 0.5 * float(np.sum(r**2))
     if not np.isfinite(cost):
         return None

@@ -18,7 +18,7 @@ import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
 from ._problem import Problem, _linearise, _over_starts
-from ._results import FitResult, descent_point, max_gradient_cosine, summarise
+from ._results import FitResult, descent_point, summarise
 
 
 def set_smoothing(model, smoothing: float):
@@ -331,12 +331,6 @@ def _iterate(u0, core, *, rtol, atol, ftol, max_steps, linear_solver, progress,
 _HARD = ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed")
 
 
-def _stationary(problem, u, gtol) -> bool:
-    """MINPACK's gtol test at `u` (non-finite linearisations count as stationary: nothing to follow)."""
-    r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
-    return not np.all(np.isfinite(jtr)) or max_gradient_cosine(r, jtr, jtj) <= gtol
-
-
 def _start_verdict(runs, n_levels):
     """`(success, reason, code)` of one start over its continuation levels: its first hard failure, else the last
     level's verdict (earlier levels may stop at max_steps without failing the fit)."""
@@ -466,9 +460,9 @@ def solve(
             continue
         for _ in range(kink_restarts):
             last = per_start[i][-1][1]
-            if not last.success or _stationary(level, u[i], gtol):
+            if not last.success:
                 break
-            nxt = descent_point(level, u[i], gtol)
+            nxt = descent_point(level, u[i], gtol)  # None where u[i] is stationary by the gtol test
             if nxt is None:
                 break
             (run,) = _iterate(jnp.asarray(nxt, u.dtype)[None], level.core, rtol=rtol, atol=atol, ftol=ftol,

@@ -572,7 +572,8 @@ def _cmd_fit(args) -> int:
             dataset.require(c)
         _check_fit_data(dataset, targets)
         free = config.fit_free(targets)
-        _check_memory(config, dataset, _num_free(config.build(None), free))
+        num_free = _num_free(config.build(None), free)
+        _check_memory(config, dataset, num_free)
         _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}",
               quiet)
         _info("initial values from the data", quiet)
@@ -586,7 +587,7 @@ def _cmd_fit(args) -> int:
         what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
         _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
         if len(starts) > 1:
-            need, have = len(starts) * _memory_estimate(config, dataset, _num_free(starts[0], free)), _physical_memory()
+            need, have = len(starts) * _memory_estimate(config, dataset, num_free), _physical_memory()
             if need > MULTI_START_MEMORY or (have is not None and need > 0.5 * have):
                 _info(f"fitting only the start closest to the data: {len(starts)} starts together would need about "
                       f"{need / 2**30:.1f} GiB", quiet)
