@@ -25,6 +25,7 @@ import numpy as np
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
+from . import _nonlinear_kinds  # noqa: F401 - registers the [model] kinds
 from ._data import CHANNELS, parse_columns, parse_units
 from ._kinds import (
     DEFAULT_KIND,
@@ -39,7 +40,8 @@ from ._kinds import (
 )
 from ._model_kinds import ACTUATOR, ModelKind, get_model_kind, model_kinds
 
-TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "observer", "data", "fit")
+TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "observer", "model", "data", "fit")
+MODEL_TABLES = ("observer", "model")  # the tables naming a whole-model kind (none: `pj.Actuator`)
 
 MAX_STEPS = 100_000
 MAX_LEVELS = 10
@@ -139,17 +141,17 @@ class ModelConfig:
 
     @property
     def is_observer(self) -> bool:
-        return self.model != "actuator"
+        return self.model_kind.table == "observer"
 
     @property
     def observer(self) -> dict | None:
-        """The `[observer]` options (`None` for an actuator)."""
+        """The `[observer]` options (`None` for another model)."""
         return self.model_options if self.is_observer else None
 
     @property
     def charge(self) -> dict | None:
         """The actuator's `[charge]` options (`None`: no charge output)."""
-        return None if self.is_observer else self.model_options.get("charge")
+        return self.model_options.get("charge") if self.model_kind is ACTUATOR else None
 
     @property
     def state(self) -> dict:
@@ -191,7 +193,7 @@ class ModelConfig:
 
     def cost(self) -> int:
         """Relative cost per sample of the model (the Bouc–Wen RK4 substeps), for memory estimates."""
-        return max(self.kind(t).cost(self.options(t)) for t in self._block_tables())
+        return max([self.kind(t).cost(self.options(t)) for t in self._block_tables()] + [self.model_kind.cost(self)])
 
     def predictor(self):
         """The built-in `fitting.Predictor` for this model (`actuator_predictor()` or `observer_predictor()`); the
@@ -320,7 +322,7 @@ class ModelConfig:
         for table in self._block_tables():
             where = self._block_path(table).split(".")
             for attr, reparam in self.kind(table).constraints(self.options(table)).items():
-                model = pj.constrain(model, _getter(where + [attr]), reparam)
+                model = pj.constrain(model, _getter(where + attr.split(".")), reparam)
         for attr, reparam in self.model_kind.constraints(self).items():
             model = pj.constrain(model, _getter([attr]), reparam)
         return model
@@ -386,16 +388,20 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     for name, data in raw.items():
         if not isinstance(data, Mapping):
             raise PiezojaxValueError(f"{source}: {name} must be a table ([{name}]), got a {type(data).__name__}")
-    if not any(k in raw for k in ("hysteresis", "creep", "dynamics", "observer")):
+    if not any(k in raw for k in ("hysteresis", "creep", "dynamics") + MODEL_TABLES):
         raise PiezojaxValueError(
-            f"{source}: no model blocks; give at least one of [hysteresis], [creep], [dynamics] or [observer]"
+            f"{source}: no model blocks; give at least one of [hysteresis], [creep], [dynamics], [observer] or [model]"
         )
 
-    # the model kind: an observer when [observer] names one, else the actuator
-    if "observer" in raw:
-        model = _kind(source, "observer", raw["observer"], model_kinds())
+    # the model kind: the observer or model that [observer] / [model] names, else the actuator
+    named = [t for t in MODEL_TABLES if t in raw]
+    if len(named) > 1:
+        raise PiezojaxValueError(f"{source}: [observer] and [model] both name a whole model; keep one")
+    if named:
+        table = named[0]
+        model = _kind(source, table, raw[table], model_kinds(table))
         mkind = get_model_kind(model)
-        mt = ConfigTable(source, "observer", raw["observer"], mkind.keys, model)
+        mt = ConfigTable(source, table, raw[table], mkind.keys, model)
     else:
         model, mkind, mt = ACTUATOR.name, ACTUATOR, None
     for t in ("hysteresis", "creep", "dynamics", "charge", "state"):

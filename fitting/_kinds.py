@@ -364,7 +364,8 @@ class BlockKind:
         return None
 
     def constraints(self, o: dict) -> dict[str, type]:
-        """Attribute of the block → the `pj.AbstractReparam` it is fitted under (e.g. `{"weights": pj.Positive}`)."""
+        """Attribute of the block (a dotted path for a nested one, `"system.poles"`) → the `pj.AbstractReparam` it is
+        fitted under (e.g. `{"weights": pj.Positive}`)."""
         return {}
 
     def default_free(self, o: dict, config) -> tuple[str, ...]:
@@ -524,6 +525,54 @@ class PrandtlIshlinskiiKind(BlockKind):
     def from_cold_start(self, o, block):
         return {"weights": np.asarray(block.weights), "thresholds": np.asarray(block.thresholds),
                 "w0": float(block.w0)}
+
+
+class PlayKind(BlockKind):
+    r"""Weighted play (backlash) operators without a linear term, $y = \sum_i w_i P_{r_i}[v]$ (`pj.PrandtlIshlinskii`
+    with $w_0 = 0$): `plays` (≤ 100, default 1: one backlash), `weights`, `thresholds`, `smoothing`. Start: the
+    weights by non-negative least squares on the play outputs for thresholds $c\max|v|\,i/n$, $i = 1 \dots n$, the
+    scale $c$ the best of 0.02 to 0.9."""
+
+    table, name = "hysteresis", "play"
+    keys = ("plays", "smoothing", "weights", "thresholds")
+
+    def parse(self, t, raw):
+        n, (w, r) = t.sized_vectors("plays", 1, MAX_PLAYS, {"weights": dict(positive=True),
+                                                         "thresholds": dict(positive=True, ascending=True)})
+        return {"smoothing": t.number("smoothing", 0.0, nonnegative=True), "plays": n, "weights": w,
+                "thresholds": r}
+
+    def parameters(self, o):
+        return ("weights", "thresholds")
+
+    def placeholder(self, o):
+        n = o["plays"]
+        return {"weights": np.full(n, 0.1), "thresholds": np.arange(1.0, n + 1)}
+
+    def start(self, o, data):
+        import scipy.optimize
+
+        n, recs, y = o["plays"], data.records(), data.outputs()
+        sign = 1.0 if data.static_gain() >= 0 else -1.0
+        best = None
+        for c in np.geomspace(0.02, 0.9, 10):
+            r = c * data.max_input() * np.arange(1, n + 1) / n
+            play = pj.PlayOperator(jnp.asarray(r))
+            a = np.concatenate([np.asarray(play(jnp.asarray(v))).reshape(v.size, n) for v, _, _ in recs])
+            a = np.column_stack([a, np.ones(a.shape[0]), -np.ones(a.shape[0])])  # a free offset
+            w, res = scipy.optimize.nnls(a, sign * y)
+            if best is None or res < best[0]:
+                best = (res, w[:n], r)
+        _, w, r = best
+        w = np.maximum(w, 1e-3 * max(float(w.max()), TINY))
+        return {"weights": w, "thresholds": r}
+
+    def build(self, o, v, config):
+        return pj.PrandtlIshlinskii(f64(v["weights"]), f64(v["thresholds"]), w0=f64(0.0),
+                                    smoothing=f64(o["smoothing"]))
+
+    def constraints(self, o):
+        return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
 
 
 class BoucWenKind(BlockKind):
@@ -836,6 +885,103 @@ class LagKind(BlockKind):
         return {"fractions": pj.Fractions, "time_constants": pj.Positive}
 
 
+class LinearCreepKind(BlockKind):
+    r"""`pj.LinearCreep` of a `pj.StableTransferFunction` (paper 001's eq. 9): `order` real poles (≤ 10, `poles`
+    < 0 in rad/s), `real_zeros` real zeros (`zeros` < 0) and the DC `gain`. In parallel the creep is strictly proper
+    ($h(0^+) = 0$, at most `order - 1` zeros, default `order - 1`); in series it responds at once ($h(0^+) \ne 0$:
+    `order` zeros), and its DC `gain` is fixed by default (the hysteresis carries the scale). Start: the
+    Kelvin–Voigt creep's start or joint cold start with `order` lags, written as its transfer function ($\sum_i
+    c_i/(1 + \tau_i s)$, plus 1 in series): poles $-1/\tau_i$, the zeros of the numerator (real, between them)."""
+
+    table, name = "creep", "linear"
+    keys = ("order", "poles", "real_zeros", "zeros", "gain")
+
+    def parse(self, t, raw):
+        n, (p,) = t.sized_vectors("order", 1, MAX_CREEP_ORDER, {"poles": dict(negative=True)})
+        series = _structure(raw) == "series"
+        limit = n if series else n - 1
+        m, (z,) = t.sized_vectors("real_zeros", limit, max(limit, 0), {"zeros": dict(negative=True)}, minimum=0)
+        if series and m != n:
+            raise t.error(f"a creep in series responds at once: it needs as many zeros as poles ({n}), got {m}",
+                          "real_zeros" if t.has("real_zeros") else "zeros")
+        return {"order": n, "poles": p, "real_zeros": m, "zeros": z, "gain": t.number("gain", None, nonzero=True)}
+
+    def parameters(self, o):
+        return ("poles",) + (("zeros",) if o["real_zeros"] else ()) + ("gain",)
+
+    def placeholder(self, o):
+        n, m = o["order"], o["real_zeros"]
+        return {"poles": -np.geomspace(1.0, 10.0, n), "zeros": -1.5 * np.geomspace(1.0, 10.0, n)[:m], "gain": 1.0}
+
+    def _from_lags(self, o, c: np.ndarray, tau: np.ndarray, series: bool) -> dict:
+        r"""Poles, zeros and DC gain of $d + \sum_i c_i/(1 + \tau_i s)$ ($d$ = 1 in series, else 0)."""
+        tau = _strictly_ascending_taus(np.asarray(tau, float))
+        den = [np.poly1d([t, 1.0]) for t in tau]
+        num = np.poly1d([1.0 if series else 0.0])
+        for t in tau:
+            num = num * np.poly1d([t, 1.0])
+        for i, ci in enumerate(c):
+            term = np.poly1d([float(ci)])
+            for j, d in enumerate(den):
+                if j != i:
+                    term = term * d
+            num = num + term
+        zeros = np.sort(np.real(np.roots(num.coeffs)))[::-1] if num.order > 0 else np.zeros(0)
+        zeros = np.minimum(zeros, -1e-12)[: o["real_zeros"]]
+        m = o["real_zeros"]
+        if zeros.size < m:  # more zeros asked than the lags have (a parallel creep with fewer lags' worth)
+            zeros = np.r_[zeros, -1.5 / tau[: m - zeros.size]]
+        return {"poles": -1.0 / tau, "zeros": zeros, "gain": float(series) + float(np.sum(c))}
+
+    def start(self, o, data):
+        kv = KelvinVoigtKind().start({"order": o["order"]}, data)
+        series = data.config.creep_structure == "series"
+        return self._from_lags(o, 1.0 / kv["stiffnesses"], kv["time_constants"], series)
+
+    def build(self, o, v, config):
+        return pj.LinearCreep(pj.StableTransferFunction(f64(v["gain"]), poles=f64(v["poles"]),
+                                                        zeros=f64(v.get("zeros", np.zeros(0)))))
+
+    def values(self, o, data):
+        out = super().values(o, data)
+        out.setdefault("zeros", np.zeros(0))
+        return out
+
+    def constraints(self, o):
+        return {"system.poles": Negative} | ({"system.zeros": Negative} if o["real_zeros"] else {})
+
+    def default_free(self, o, config):
+        series = config.creep_structure == "series"
+        return ("system.poles",) + (("system.zeros",) if o["real_zeros"] else ()) + (
+            () if series else ("system.gain",))
+
+    def cold_start_args(self, o, config):
+        default = o["order"] if config.creep_structure == "series" else o["order"] - 1
+        if o["real_zeros"] != default:
+            return None
+        return {"creep_order": o["order"], "structure": config.creep_structure}
+
+    def from_cold_start(self, o, block):
+        if block is None:
+            return None
+        series = block.k0 is not None
+        return self._from_lags(o, 1.0 / np.asarray(block.stiffnesses), np.asarray(block.time_constants), series)
+
+
+def _structure(raw: Mapping) -> str:
+    """The creep structure a CONFIG names (`[creep] structure`, default parallel), before it is validated."""
+    c = raw.get("creep", {})
+    return c.get("structure", "parallel") if isinstance(c, Mapping) else "parallel"
+
+
+def _strictly_ascending_taus(tau: np.ndarray) -> np.ndarray:
+    """Time constants made distinct (at least 1 % apart), so that the lags' poles and zeros stay apart."""
+    tau = np.sort(tau)
+    for i in range(1, tau.size):
+        tau[i] = max(tau[i], 1.01 * tau[i - 1])
+    return tau
+
+
 # ---- dynamics
 
 
@@ -946,6 +1092,6 @@ def f64(x) -> jax.Array:
     return jnp.asarray(np.asarray(x, np.float64))
 
 
-for _kind in (PrandtlIshlinskiiKind(), BoucWenKind(), MaxwellSlipKind(), PreisachKind(), NoHysteresis(),
-              KelvinVoigtKind(), LogarithmicKind(), LagKind(), NoCreep(), TransferFunctionKind()):
+for _kind in (PrandtlIshlinskiiKind(), PlayKind(), BoucWenKind(), MaxwellSlipKind(), PreisachKind(), NoHysteresis(),
+              KelvinVoigtKind(), LogarithmicKind(), LagKind(), LinearCreepKind(), NoCreep(), TransferFunctionKind()):
     register_kind(_kind)

@@ -24,7 +24,8 @@ class ModelKind:
 
     **Class attributes:**
 
-    - `table`: the CONFIG table naming it (`"observer"`), or `None` for the default model (no such table).
+    - `table`: the CONFIG table naming it (`"observer"`, or `"model"` for a model that is not an observer), or
+      `None` for the default model (no such table).
     - `name`: the kind's name in that table.
     - `keys`: the keys of that table besides `kind`.
     - `blocks`: the block tables the model is built from (`"hysteresis"`, `"creep"`, `"dynamics"`);
@@ -80,6 +81,11 @@ class ModelKind:
         """The default free set for these target channels."""
         return free
 
+    def cost(self, config) -> int:
+        """Relative cost per sample of the model's own simulation (e.g. integration substeps), for the fit's memory
+        estimate (the blocks' costs are the kinds')."""
+        return 1
+
     def start_state(self, config, model, dataset):
         """Data-driven values of the model's own state parameters (default: none)."""
         return model
@@ -89,17 +95,19 @@ _MODEL_KINDS: dict[str, ModelKind] = {}
 
 
 def register_model_kind(kind: ModelKind, *, replace: bool = False) -> ModelKind:
-    """Make a whole-model kind available to CONFIG files (`[observer] kind = "<kind.name>"`)."""
-    if not isinstance(kind, ModelKind) or kind.table is None:
-        raise PiezojaxValueError("`kind` must be a fitting.ModelKind instance with a `table`")
+    """Make a whole-model kind available to CONFIG files (`[observer] kind = "<kind.name>"`, or `[model]` for a
+    model that is not an observer). Names are unique across both tables."""
+    if not isinstance(kind, ModelKind) or kind.table not in ("observer", "model"):
+        raise PiezojaxValueError("`kind` must be a fitting.ModelKind instance with `table` 'observer' or 'model'")
     if kind.name in _MODEL_KINDS and not replace:
         raise PiezojaxValueError(f"a model kind named {kind.name!r} is already registered")
     _MODEL_KINDS[kind.name] = kind
     return kind
 
 
-def model_kinds() -> tuple[str, ...]:
-    return tuple(_MODEL_KINDS)
+def model_kinds(table: str | None = None) -> tuple[str, ...]:
+    """The registered whole-model kinds (of one table, `"observer"` or `"model"`, when given)."""
+    return tuple(n for n, k in _MODEL_KINDS.items() if table is None or k.table == table)
 
 
 def get_model_kind(name: str) -> ModelKind:
@@ -136,7 +144,8 @@ def parse_state(raw: Mapping, source: str) -> dict:
 
 
 class _WithState(ModelKind):
-    """A model with an output `offset` and a hysteresis `prehistory` (`[state]`), both fields of the model."""
+    """A model with an output `offset` and a hysteresis `prehistory` (`[state]`), both fields of the model; the kind
+    defines `displacement(model, experiment)`, the model's displacement for one experiment (for their starts)."""
 
     offset_default: ClassVar[bool] = True
 
@@ -158,10 +167,6 @@ class _WithState(ModelKind):
     def state_free(self, config) -> tuple[str, ...]:
         return (("offset",) if self.offset(config) is not False else ()) + (
             ("prehistory",) if self.prehistory(config) is not False else ())
-
-    def displacement(self, model, experiment) -> np.ndarray:
-        """The model's displacement for one experiment (for the starts of the state)."""
-        raise NotImplementedError
 
     def start_state(self, config, model, dataset):
         """The offset (the mean residual of the displacement) and the prehistory (the best of a grid of excursions
@@ -320,6 +325,11 @@ class _Observer(ModelKind):
 
         return observer_predictor(force="force" in self.estimates)
 
+    def displacement(self, model, experiment):
+        """The estimated displacement for one experiment."""
+        return np.asarray(_observer_displacement(model, jnp.asarray(experiment.v_in),
+                                                 jnp.asarray(experiment["v_out"]), jnp.asarray(experiment.dt)))
+
 
 _OBSERVER_REQUIRED = (
     "integrator_capacitance",
@@ -394,9 +404,6 @@ class CurrentIntegrationObserver(_WithState, _Observer):
         return ("force_sensitivity", "displacement_coefficient", "stiffness") + (
             ("capacitance_p",) if config.hysteresis_kind.empty else ()) + self.state_free(config)
 
-    def displacement(self, model, experiment):
-        return np.asarray(_observer_displacement(model, jnp.asarray(experiment.v_in),
-                                                 jnp.asarray(experiment["v_out"]), jnp.asarray(experiment.dt)))
 
 
 @eqx.filter_jit
@@ -420,12 +427,27 @@ def _required_numbers(t: ConfigTable, required: tuple[str, ...], optional: dict[
     return out
 
 
-class DynamicImpedanceKind(_Observer):
+class _ObserverOffset(_WithState, _Observer):
+    """An observer with a displacement `offset` from `[state]` (off unless `offset = true` or a number: the
+    estimate of the paper has none); no prehistory (the observer has no hysteresis operator)."""
+
+    tables = ("state",)
+    offset_default = False
+
+    def parse(self, t, raw, source):
+        return {"state": parse_state(raw, source)}
+
+    def offset_value(self, config) -> dict:
+        return {"offset": self.state_values(config)["offset"]}
+
+
+class DynamicImpedanceKind(_ObserverOffset):
     r"""`pj.DynamicImpedanceObserver`, paper 000's displacement observer from the transimpedance amplifier output
     `v_out`: $\hat\delta = G(s)[\alpha V_{in} + \beta(Q_\delta + \gamma V_{in})]$, with $G$ the `[dynamics]` table (its
     DC gain included: without it the scale of $\alpha$, $\beta$ would be free). Required: `feedback_resistance`
     $R_f$, `capacitance` $C_r$ [F], `alpha`, `beta`; optional `bias_current = 0`, `gamma` (default: fitted from
-    0.1 $C_r$). Fitted by default: `gamma` and $G$."""
+    0.1 $C_r$). `[state] offset` (displacement offset, off by default). Fitted by default: `gamma`, $G$ and the
+    offset when present."""
 
     name = "dynamic_impedance"
     estimates = ("displacement",)
@@ -435,13 +457,14 @@ class DynamicImpedanceKind(_Observer):
 
     def parse(self, t, raw, source):
         return _required_numbers(t, ("feedback_resistance", "capacitance", "alpha", "beta"),
-                                 {"alpha": {}, "beta": {}, "bias_current": {}, "gamma": {"nonnegative": True}})
+                                 {"alpha": {}, "beta": {}, "bias_current": {}, "gamma": {"nonnegative": True}}) | (
+            super().parse(t, raw, source))
 
     def _observer(self, config, dynamics, gamma):
         o = config.model_options
         return pj.DynamicImpedanceObserver(
             f64(o["feedback_resistance"]), f64(o["capacitance"]), f64(gamma), f64(o.get("bias_current", 0.0)),
-            f64(o["alpha"]), f64(o["beta"]), dynamics)
+            f64(o["alpha"]), f64(o["beta"]), dynamics, **self.offset_value(config))
 
     def _gamma(self, config):
         g = config.model_options.get("gamma")
@@ -465,21 +488,23 @@ class DynamicImpedanceKind(_Observer):
         return {} if config.model_options.get("gamma") == 0 else {"gamma": pj.Positive}
 
     def default_free(self, config):
-        return () if config.model_options.get("gamma") == 0 else ("gamma",)
+        return (() if config.model_options.get("gamma") == 0 else ("gamma",)) + self.state_free(config)
 
 
-class SensorLayerKind(_Observer):
+class SensorLayerKind(_ObserverOffset):
     r"""`pj.SensorLayerObserver`, paper 002's smart-stack sensing layer: displacement and force from the sensor
     voltage `v_out` ($V_s$) and the drive `v_in` ($V_a$). Required: `d33` [C/N], `amplifier_capacitance` [F], `k_p`,
     `k_s` [N/m]; optional `crosstalk` $p_c$ (default 0). Fitted by default: `d33` (the force scale $d_{33}/C$),
-    `k_s` (with $k_p$ fixed, the compliance $1/k_p + 1/k_s$ of the displacement) and `crosstalk`."""
+    `k_s` (with $k_p$ fixed, the compliance $1/k_p + 1/k_s$ of the displacement), `crosstalk`, and the displacement
+    offset when `[state] offset` asks for one."""
 
     name = "sensor_layer"
     keys = ("d33", "amplifier_capacitance", "k_p", "k_s", "crosstalk")
     blocks = ()
 
     def parse(self, t, raw, source):
-        return _required_numbers(t, ("d33", "amplifier_capacitance", "k_p", "k_s"), {"crosstalk": {}})
+        return _required_numbers(t, ("d33", "amplifier_capacitance", "k_p", "k_s"), {"crosstalk": {}}) | (
+            super().parse(t, raw, source))
 
     def records(self, config, dataset):
         return []
@@ -487,13 +512,13 @@ class SensorLayerKind(_Observer):
     def build(self, config, blocks, data):
         o = config.model_options
         return pj.SensorLayerObserver(f64(o["d33"]), f64(o["amplifier_capacitance"]), f64(o["k_p"]), f64(o["k_s"]),
-                                      crosstalk=f64(o.get("crosstalk", 0.0)))
+                                      crosstalk=f64(o.get("crosstalk", 0.0)), **self.offset_value(config))
 
     def constraints(self, config):
         return {"d33": pj.Positive, "k_s": pj.Positive}
 
     def default_free(self, config):
-        return ("d33", "k_s", "crosstalk")
+        return ("d33", "k_s", "crosstalk") + self.state_free(config)
 
 
 register_model_kind(DynamicImpedanceKind())

@@ -39,6 +39,7 @@ _CONFIG_HELP = """\
 CONFIG is a TOML file naming the model blocks, optional initial values, and the fit options:
 
   [hysteresis]  kind = "prandtl_ishlinskii" (plays = 10, weights, thresholds, w0)
+                     | "play" (plays = 1, weights, thresholds: backlash, no linear term)
                      | "bouc_wen" (A, beta, gamma, n, d, method = "closed_form"|"rk4", substeps)
                      | "maxwell_slip" (elements = 8, stiffness, breakaway)
                      | "preisach" (levels = 8, range = [v_min, v_max], mu)
@@ -46,6 +47,7 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
                 polynomial = 2..6 (coefficients, polynomial_scale): static output polynomial (loop asymmetry)
   [creep]       kind = "kelvin_voigt" (order = 1, stiffnesses, time_constants)
                      | "logarithmic" (gamma, t0, gain) | "lag" (lags = 1, fractions, time_constants) | "none"
+                     | "linear" (order = 1 poles [rad/s] < 0, real_zeros, zeros [rad/s] < 0, gain)
                 structure = "parallel" | "series" (after the hysteresis; "lag" only in series)
   [dynamics]    order = 0 .. 8 (gain = 1, omega [rad/s], zeta, poles [rad/s] < 0)
                 zero_pairs (zero_omega [rad/s], zero_zeta), real_zeros (zeros [rad/s])
@@ -59,6 +61,13 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
                 alpha, beta (required), bias_current, gamma; G(s) from [dynamics]
               | "sensor_layer": paper 002, displacement and force from v_in, v_out; d33, amplifier_capacitance,
                 k_p, k_s (required), crosstalk
+                (the 000 and 002 observers: [state] offset = true for a displacement offset)
+  [model]       kind = "bouc_wen_oscillator": the hysteretic benchmark's oscillator, displacement from the force in
+                v_in; m, c, k, alpha, beta, gamma, delta, nu (started from the data when absent),
+                hold = "linear" | "zoh" | "periodic", substeps = 4
+              | "electromechanical": paper 003, displacement and charge from v_in; m (required), b, k,
+                capacitance, t_em or coupling_degree = 0, elements = 4 (element_capacitances,
+                breakaway_voltages), hold, substeps = 8
   [fit]         free = ["hysteresis", "creep.time_constants", ...] (default: every identifiable parameter)
                 weights = "range" | "noise" | {displacement = 1e6, force = 1e3}
                 smoothing = [0.05, 0.0]   (continuation: relaxed, then exact hysteresis)

@@ -297,7 +297,7 @@ def test_console_script_help_and_error(work, capsys):
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
         f"piezojax: error: {d / 'badkind.toml'}: [hysteresis] kind: unknown kind 'stop'; allowed kinds: "
-        "prandtl_ishlinskii, bouc_wen, maxwell_slip, preisach, none"
+        "prandtl_ishlinskii, play, bouc_wen, maxwell_slip, preisach, none"
     ]
     assert not (d / "o").exists()
     # the same parser in-process: per-command help with examples, one-line usage errors

@@ -36,6 +36,7 @@ class DynamicImpedanceObserver(AbstractObserver):
     - `alpha` (0.8971 in the paper) and `beta` (6.9067e7 in the paper), eq. (10)–(11).
     - `dynamics`: $G(s)$, a `pj.AbstractLinearSystem` from $F_t$ to displacement [m per unit of $F_t$].
     - `hold`: how $F_t$ is held between samples when simulating $G$ (`"zoh"` default, or `"foh"`).
+    - `offset` [m]: added to the displacement estimate (the zero of the displacement sensor it is compared with).
 
     ```python
     G = pj.TransferFunction([1e-7 * 1e9], [1.0, 2e3, 2e6, 1e9])
@@ -51,6 +52,7 @@ class DynamicImpedanceObserver(AbstractObserver):
     alpha: Float[Array, ""]
     beta: Float[Array, ""]
     dynamics: AbstractLinearSystem
+    offset: Float[Array, ""]
     hold: str = eqx.field(static=True)
 
     def __init__(
@@ -63,6 +65,8 @@ class DynamicImpedanceObserver(AbstractObserver):
         beta: ArrayLike,
         dynamics: AbstractLinearSystem,
         hold: str = "zoh",
+        *,
+        offset: ArrayLike = 0.0,
     ):
         self.feedback_resistance = check_positive_param(feedback_resistance, "feedback_resistance")
         self.capacitance = check_positive_param(capacitance, "capacitance")
@@ -78,10 +82,11 @@ class DynamicImpedanceObserver(AbstractObserver):
         if hold not in ("zoh", "foh"):
             raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         self.hold = hold
+        self.offset = check_scalar_param(offset, "offset")
 
     def check(self) -> "DynamicImpedanceObserver":
         m = error_if_not_positive(self, ("feedback_resistance", "capacitance", "gamma"), allow_zero=("gamma",))
-        return error_if_not_finite(m, ("bias_current", "alpha", "beta"))
+        return error_if_not_finite(m, ("bias_current", "alpha", "beta", "offset"))
 
     def static_impedance(self) -> "DynamicImpedanceObserver":
         """The same observer with $\\gamma = 0$ (static feedthrough cancellation only)."""
@@ -102,7 +107,7 @@ class DynamicImpedanceObserver(AbstractObserver):
         return m.alpha * v + m.beta * (m._charge(v, s["v_out"], dt) + m.gamma * v)
 
     def __call__(self, v_in: SignalLike, v_out: SignalLike, dt: ArrayLike) -> Estimate:
-        r"""Estimated displacement $\hat\delta = G(s) F_t$ (no force estimate: the paper's $F_{ext} = 0$).
+        r"""Estimated displacement $\hat\delta = G(s) F_t$ + `offset` (no force estimate: the paper's $F_{ext} = 0$).
 
         **Arguments:**
 
@@ -114,4 +119,4 @@ class DynamicImpedanceObserver(AbstractObserver):
         m, dt, s = prepare(self, dt, v_in=v_in, v_out=v_out)
         v = s["v_in"]
         f_t = m.alpha * v + m.beta * (m._charge(v, s["v_out"], dt) + m.gamma * v)
-        return Estimate(displacement=m.dynamics.simulate(f_t, dt, hold=m.hold))
+        return Estimate(displacement=m.dynamics.simulate(f_t, dt, hold=m.hold) + m.offset)

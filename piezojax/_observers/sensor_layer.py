@@ -29,6 +29,7 @@ class SensorLayerObserver(AbstractObserver):
     **Arguments:**
 
     - `d33` [C/N] > 0, `amplifier_capacitance` $C$ [F] > 0, `k_p`, `k_s` [N/m] > 0, `crosstalk` $p_c$ [V/V].
+    - `offset` [m]: added to the displacement estimate (the zero of the displacement sensor it is compared with).
 
     ```python
     obs = pj.SensorLayerObserver(1.6e-12, 104e-12, 6.3e6, 5e7, crosstalk=-3e-4)
@@ -41,18 +42,20 @@ class SensorLayerObserver(AbstractObserver):
     k_p: Float[Array, ""]
     k_s: Float[Array, ""]
     crosstalk: Float[Array, ""]
+    offset: Float[Array, ""]
 
     def __init__(self, d33: ArrayLike, amplifier_capacitance: ArrayLike, k_p: ArrayLike, k_s: ArrayLike,
-                 crosstalk: ArrayLike = 0.0):
+                 crosstalk: ArrayLike = 0.0, *, offset: ArrayLike = 0.0):
         self.d33 = check_positive_param(d33, "d33")
         self.amplifier_capacitance = check_positive_param(amplifier_capacitance, "amplifier_capacitance")
         self.k_p = check_positive_param(k_p, "k_p")
         self.k_s = check_positive_param(k_s, "k_s")
         self.crosstalk = check_scalar_param(crosstalk, "crosstalk")
+        self.offset = check_scalar_param(offset, "offset")
 
     def check(self) -> "SensorLayerObserver":
         m = error_if_not_positive(self, ("d33", "amplifier_capacitance", "k_p", "k_s"))
-        return error_if_not_finite(m, ("crosstalk",))
+        return error_if_not_finite(m, ("crosstalk", "offset"))
 
     def without_crosstalk(self) -> "SensorLayerObserver":
         """The paper's eq. (9): the same observer with $p_c = 0$."""
@@ -63,9 +66,9 @@ class SensorLayerObserver(AbstractObserver):
 
         `dt` is accepted for a uniform observer interface; the estimate is static.
 
-        **Returns:** an `Estimate` with `displacement` $\hat x_a$ [m] and `force` $\hat F_s$ [N].
+        **Returns:** an `Estimate` with `displacement` $\hat x_a$ + `offset` [m] and `force` $\hat F_s$ [N].
         """
         m, dt, s = prepare(self, dt, v_in=v_in, v_out=v_out)
         force = m.amplifier_capacitance / m.d33 * (s["v_out"] - m.crosstalk * s["v_in"])
         displacement = force * (m.k_p + m.k_s) / (m.k_p * m.k_s)
-        return Estimate(displacement=displacement, force=force)
+        return Estimate(displacement=displacement + m.offset, force=force)

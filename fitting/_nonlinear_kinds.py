@@ -1,0 +1,358 @@
+"""Whole-model kinds of the `[model]` table: nonlinear models that are not built from the actuator's blocks.
+
+- `bouc_wen_oscillator`: `pj.BoucWenOscillator`, the hysteretic benchmark's force-driven oscillator (`v_in` is the
+  force, `displacement` the output; rename the benchmark's `u`, `y` with `[data] columns`).
+- `electromechanical`: `pj.ElectromechanicalActuator`, paper 003's lumped electromechanical actuator with Maxwell-slip
+  voltage hysteresis (`displacement` and `charge` from `v_in`).
+
+Each declares its keys, the parameters a simulation needs, data-driven starts for the others, constraints and the
+default free set, as every `ModelKind` (`fitting._model_kinds`).
+"""
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+from ._initialise import _dynamics_candidates, _filter_pairs
+from ._kinds import MAX_ELEMENTS, MAX_SUBSTEPS, TINY, chord, f64
+from ._model_kinds import ModelKind, register_model_kind
+from ._predict import Predictor
+
+MAX_COUPLING_DEGREE = 4
+
+
+def _resonance(dataset, output: str) -> tuple[float, float, float]:
+    r"""`(omega, zeta, gain)` of the second-order response from `v_in` to `output`: each candidate of
+    `fitting.cold_start_actuator`'s resonance estimate (ARX on the raw and high-passed records, the spectral peak),
+    with the static gain by least squares through the DC-normalised filter; the candidate with the smallest residual.
+    Raises `PiezojaxValueError` when no experiment has the output."""
+    recs = [(np.asarray(e.v_in, float), np.asarray(e[output], float), e.dt) for e in dataset if e.has(output)]
+    if not recs:
+        raise PiezojaxValueError(f"data-driven initial values need data files with a {output!r} column (or give "
+                                 "every parameter value explicitly in the configuration)")
+    dt = min(r[2] for r in recs)
+    recs = [r for r in recs if r[2] == dt]
+    best = None
+    for _, omega, zeta in _dynamics_candidates(recs, 2):
+        if omega.size != 1 or not (np.isfinite(omega[0]) and np.isfinite(zeta[0])):
+            continue
+        u = np.concatenate([_filter_pairs(v, dt, omega, zeta) for v, _, _ in recs])
+        y = np.concatenate([np.asarray(y) - np.mean(y) for _, y, _ in recs])
+        u = u - np.mean(u)
+        g = chord(u, y)
+        err = float(np.sum((y - g * u) ** 2))
+        if np.isfinite(err) and g != 0 and (best is None or err < best[3]):
+            best = (float(omega[0]), float(zeta[0]), g, err)
+    if best is None:  # no resonance found: a well-damped mode at a fifth of the Nyquist frequency
+        v = np.concatenate([r[0] for r in recs])
+        y = np.concatenate([r[1] for r in recs])
+        return 0.2 * np.pi / dt, 0.7, chord(v, y)
+    return best[:3]
+
+
+# ------------------------------------------------------------------------------------------ Bouc–Wen oscillator
+
+
+_BW_NAMES = ("m", "c", "k", "alpha", "beta", "gamma", "delta", "nu")
+
+
+@functools.cache
+def bouc_wen_oscillator_predictor(hold: str = "linear", substeps: int = 4) -> Predictor:
+    """Predictor for a `pj.BoucWenOscillator`: `displacement` from the force `v_in`, from rest, with fixed steps
+    (`substeps` per sample: RK4 with the band-limited input for `hold="periodic"`, Tsit5 otherwise), so that the
+    Jacobian is that of one fixed discretisation."""
+
+    def fn(model, data):
+        if hold == "periodic":
+            y = model.simulate(data.v_in, data.dt, hold="periodic", method="rk4", substeps=substeps)
+        else:
+            y = model.simulate(data.v_in, data.dt, hold=hold, rtol=None, substeps=substeps)
+        return {"displacement": y}
+
+    return Predictor(fn, ("displacement",))
+
+
+class BoucWenOscillatorKind(ModelKind):
+    r"""`pj.BoucWenOscillator` (`[model] kind = "bouc_wen_oscillator"`): $m\ddot y + c\dot y + ky + z = u$,
+    $\dot z = \alpha\dot y - \beta(\gamma|\dot y||z|^{\nu-1}z + \delta\dot y|z|^\nu)$, driven by the force in `v_in`
+    (N), predicting `displacement` (m). Keys: the parameters `m`, `c`, `k`, `alpha`, `beta`, `gamma`, `delta`, `nu`
+    (each optional: the rest start from the data), `hold` (`"linear"` default, `"zoh"`, or `"periodic"` for a
+    record that is one period of a multisine) and `substeps` (fixed steps per sample, default 4).
+
+    Start: the resonance $\omega$, $\zeta$ and static compliance $1/(k + \alpha)$ of the small-signal response
+    (the resonance estimate of `fitting.cold_start_actuator`), split $k = \alpha = (k + \alpha)/2$, $m = (k +
+    \alpha)/\omega^2$, $c = 2\zeta\omega m$; $\nu = 1$, $\beta$ such that $\gamma = 1$ saturates $z$ at half the
+    largest force, and $\delta$ the best of $\{1, 0, -0.5, -1.4\}$ by simulated error. $\beta$ only enters through
+    $\beta\gamma$ and $\beta\delta$ and $\nu$ is usually 1: both are fixed by default (`[fit] free` frees them)."""
+
+    table, name = "model", "bouc_wen_oscillator"
+    keys = _BW_NAMES + ("hold", "substeps")
+    blocks = ()
+
+    def parse(self, t, raw, source):
+        o = {k: t.number(k, None, positive=k in ("m", "nu")) for k in _BW_NAMES}
+        o["hold"] = t.string("hold", ("linear", "zoh", "periodic"), "linear")
+        o["substeps"] = t.integer("substeps", 4, minimum=1, maximum=MAX_SUBSTEPS)
+        return o
+
+    def outputs(self, config):
+        return ("displacement",)
+
+    def predictor(self, config):
+        o = config.model_options
+        return bouc_wen_oscillator_predictor(o["hold"], o["substeps"])
+
+    def records(self, config, dataset):
+        return []
+
+    def cost(self, config):
+        return config.model_options["substeps"]
+
+    def missing(self, config):
+        return [f"[model] {k}" for k in _BW_NAMES if k != "nu" and config.model_options[k] is None]
+
+    def _start(self, config, data) -> dict:
+        o = config.model_options
+        if data is None:
+            return dict(zip(_BW_NAMES, (2.0, 10.0, 5e4, 5e4, 1e3, 0.8, -1.1, 1.0)))
+        omega, zeta, gain = _resonance(data.dataset, "displacement")
+        k_eff = 1.0 / abs(gain) if o["k"] is None or o["alpha"] is None else o["k"] + o["alpha"]
+        k = o["k"] if o["k"] is not None else (0.5 * k_eff if o["alpha"] is None else max(k_eff - o["alpha"], TINY))
+        alpha = o["alpha"] if o["alpha"] is not None else max(k_eff - k, 1e-3 * k_eff)
+        m = o["m"] if o["m"] is not None else (k + alpha) / omega**2
+        umax = max(float(np.max(np.abs(e.v_in))) for e in data.dataset)
+        return {"m": m, "c": 2 * zeta * np.sqrt((k + alpha) * m), "k": k, "alpha": alpha,
+                "beta": alpha / (0.5 * max(umax, TINY)), "gamma": 1.0, "delta": 0.0, "nu": 1.0}
+
+    def build(self, config, blocks, data):
+        o = config.model_options
+        v = self._start(config, data) | {k: x for k, x in o.items() if k in _BW_NAMES and x is not None}
+        return pj.BoucWenOscillator(**{k: f64(v[k]) for k in _BW_NAMES})
+
+    def constraints(self, config):
+        return {"m": pj.Positive, "c": pj.Positive, "k": pj.Positive, "alpha": pj.Positive}
+
+    def default_free(self, config):
+        return ("m", "c", "k", "alpha", "gamma", "delta")
+
+    def start_state(self, config, model, dataset):
+        """$\\delta$ (when the file gives none): the best of a few values, by the simulated error."""
+        if config.model_options["delta"] is not None:
+            return model
+        recs = [e for e in dataset if e.has("displacement")]
+        if not recs:
+            return model
+        pred = self.predictor(config)
+        gamma = float(model.gamma)
+        cands = [eqx.tree_at(lambda s: s.delta, model, jnp.asarray(r * gamma, model.delta.dtype))
+                 for r in (1.0, 0.0, -0.5, -1.4)]
+        return min(cands, key=lambda m: _error(pred, m, recs))
+
+
+def _error(pred, model, experiments) -> float:
+    from ._predict import _as_arrays, _run
+
+    total = 0.0
+    for e in experiments:
+        data = _as_arrays([e], pred.inputs, model.m.dtype)
+        y = np.asarray(e["displacement"])
+        err = np.asarray(_run(pred, model, data)["displacement"]) - y
+        total += float(np.sum((err / max(float(np.ptp(y)), TINY)) ** 2))
+    return total if np.isfinite(total) else np.inf
+
+
+# ------------------------------------------------------------------------------------------ electromechanical
+
+
+@functools.cache
+def electromechanical_predictor(hold: str = "linear", substeps: int = 8) -> Predictor:
+    """Predictor for a `pj.ElectromechanicalActuator`: `displacement` (m) and `charge` (C) from `v_in`, from rest."""
+
+    def fn(model, data):
+        out = model.simulate(data.v_in, data.dt, hold=hold, substeps=substeps)
+        return {"displacement": out["x"], "charge": out["q"]}
+
+    return Predictor(fn, ("displacement", "charge"))
+
+
+def _stops(v: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """Stop operators $S_\\rho[v]$ (clip of the input increments to $\\pm\\rho$), one column per width."""
+    return np.asarray(_stop(jnp.asarray(widths), jnp.asarray(v)))
+
+
+@jax.jit
+def _stop(widths, v):
+    return pj.StopOperator(widths)(v)
+
+
+class ElectromechanicalKind(ModelKind):
+    r"""`pj.ElectromechanicalActuator` (`[model] kind = "electromechanical"`, paper 003): $V_{in} = V_H + V_p$,
+    $q = C V_p + T_{em}x$, $m\ddot x + b\dot x + kx = T_{em}V_p$, $V_H$ a Maxwell slip of $q$. Predicts
+    `displacement` and `charge` from `v_in`. Keys: `m` (required: with the displacement alone only the ratios of $m$,
+    $b$, $k$, $T_{em}$ are identifiable), `b`, `k`, `capacitance` (required unless a data file has a `charge`
+    column), `t_em` (ascending polynomial coefficients of $T_{em}(V_{in})$, or `coupling_degree`, default 0),
+    `elements` (Maxwell-slip elements, default 4) with `element_capacitances` and `breakaway_voltages`, `hold`
+    (`"linear"` or `"zoh"`) and `substeps` (fixed Tsit5 steps per sample, default 8; explicit steps need
+    $h(\sqrt{k/m} + b/m) \le 3$).
+
+    Start: to first order the charge follows the voltage, $dq \approx C_e\,dV_p$ with $C_e = C + T^2/k$, so
+    element $j$ is $a_j S_{\rho_j}[V_{in}]$ in volts (a stop operator, $a_j = C_e/C_j$, $\rho_j = v_j/a_j$) and
+    $x \approx \frac{T}{k} F(s)\bigl[V_{in} - \sum_j a_j S_{\rho_j}[V_{in}]\bigr]$, $F$ the DC-normalised resonance:
+    linear in $(T/k, Ta_j/k) \ge 0$ for each candidate resonance of `fitting.cold_start_actuator`'s estimate,
+    solved by non-negative least squares on widths $\rho_j$ from 0.005 to 0.8 $\max|V_{in}|$ (four per element;
+    the `elements` widths with the largest weights are kept and solved again); the candidate with the smallest
+    residual gives $k = m\omega^2$, $b = 2\zeta\omega m$, $T$ and the elements. With the charge measured,
+    $C$ is the slope of $q - Tx$ against $V_p$. Fitted by default: `b`, `k`, `t_em`, the elements, and `capacitance`
+    when the charge is a target."""
+
+    table, name = "model", "electromechanical"
+    keys = ("m", "b", "k", "capacitance", "t_em", "coupling_degree", "elements", "element_capacitances",
+            "breakaway_voltages", "hold", "substeps")
+    blocks = ()
+
+    def parse(self, t, raw, source):
+        if "m" not in t.data:
+            raise t.error("missing (the moving mass: with the displacement alone only the ratios of m, b, k and "
+                          "t_em are identifiable)", "m")
+        t_em = t.vector("t_em", None)
+        degree = t.integer("coupling_degree", None, minimum=0, maximum=MAX_COUPLING_DEGREE)
+        if t_em is not None and degree is not None and degree != t_em.size - 1:
+            raise t.error(f"has {t_em.size} coefficients, so coupling_degree = {t_em.size - 1}; got {degree}",
+                          "coupling_degree")
+        n, (caps, volts) = t.sized_vectors("elements", 4, MAX_ELEMENTS, {"element_capacitances": dict(positive=True),
+                                                                       "breakaway_voltages": dict(positive=True)},
+                                           minimum=0)
+        return {"m": t.number("m", positive=True), "b": t.number("b", None, nonnegative=True),
+                "k": t.number("k", None, positive=True), "capacitance": t.number("capacitance", None, positive=True),
+                "t_em": t_em, "degree": degree if degree is not None else (0 if t_em is None else t_em.size - 1),
+                "elements": n, "element_capacitances": caps, "breakaway_voltages": volts,
+                "hold": t.string("hold", ("linear", "zoh"), "linear"),
+                "substeps": t.integer("substeps", 8, minimum=1, maximum=MAX_SUBSTEPS)}
+
+    def outputs(self, config):
+        return ("displacement", "charge")
+
+    def predictor(self, config):
+        o = config.model_options
+        return electromechanical_predictor(o["hold"], o["substeps"])
+
+    def records(self, config, dataset):
+        return []
+
+    def cost(self, config):
+        return 2 * config.model_options["substeps"]  # Tsit5: six stages, each with the charge solve
+
+    def missing(self, config):
+        o = config.model_options
+        return [f"[model] {k}" for k in self.missing_keys(o) if o[k] is None]
+
+    def _placeholder(self, o) -> dict:
+        n = o["elements"]
+        return {"b": 1.0, "k": 1e6, "capacitance": 1e-6, "t_em": np.r_[1.0, np.zeros(o["degree"])],
+                "element_capacitances": np.full(n, 1e-5), "breakaway_voltages": np.arange(1.0, n + 1)}
+
+    def _start(self, config, data) -> dict:
+        o = config.model_options
+        if data is None or all(o[k] is not None for k in self.missing_keys(o)):
+            return self._placeholder(o)
+        recs = [(np.asarray(e.v_in, float), np.asarray(e["displacement"], float), e.dt)
+                for e in data.dataset if e.has("displacement")]
+        if not recs:
+            raise PiezojaxValueError("data-driven initial values need data files with a 'displacement' column (or "
+                                     "give every parameter value explicitly in the configuration)")
+        dt = min(r[2] for r in recs)
+        recs = [r for r in recs if r[2] == dt]
+        v = np.concatenate([r[0] for r in recs])
+        x = np.concatenate([r[1] for r in recs])
+        n = o["elements"]
+        # candidate element widths from 0.5 % to 80 % of the largest voltage (geometric: narrow elements shape the
+        # reversals), four per element; the n that carry the most weight are kept
+        grid = float(np.max(np.abs(v))) * np.geomspace(0.005, 0.8, 4 * n) if n else np.zeros(0)
+        sign = 1.0 if chord(v, x) >= 0 else -1.0
+
+        def solve(widths, omega, zeta):
+            # x = (T/k) F(s)[V - sum_j a_j S_j[V]]: coefficients >= 0 by NNLS (with a free offset)
+            drives = [np.column_stack([r[0], -_stops(r[0], widths)]) if widths.size else r[0][:, None]
+                      for r in recs]
+            cols = np.concatenate([_filter_pairs(d, dt, omega, zeta) for d in drives])
+            cols = np.column_stack([cols, np.ones(cols.shape[0]), -np.ones(cols.shape[0])])
+            coef, res = scipy.optimize.nnls(cols, sign * x)
+            return coef[: widths.size + 1], res
+
+        # each candidate resonance of the cold start's estimate; the one with the smallest residual
+        cands = [(w, z) for _, w, z in _dynamics_candidates(recs, 2) if w.size == 1]
+        best = None
+        for omega, zeta in cands + [(np.array([0.2 * np.pi / dt]), np.array([0.7]))]:
+            coef, res = solve(grid, omega, zeta)
+            if coef[0] > 0 and np.isfinite(res) and (best is None or res < best[0]):
+                best = (res, omega, zeta, coef)
+        if best is None:
+            raise PiezojaxValueError("no loading curve in the displacement (zero or unrelated to v_in)")
+        _, omega, zeta, coef = best
+        widths = np.sort(grid[np.argsort(-coef[1:], kind="stable")[:n]])
+        coef, _ = solve(widths, omega, zeta)
+        omega, zeta = float(omega[0]), float(zeta[0])
+        m = o["m"]
+        k = o["k"] if o["k"] is not None else m * omega**2
+        b = o["b"] if o["b"] is not None else 2 * zeta * np.sqrt(k * m)
+        t = sign * float(coef[0]) * k if o["t_em"] is None else float(o["t_em"][0])
+        a = np.asarray(coef[1:]) / coef[0]
+        a = np.maximum(a, 1e-3 * max(float(np.max(a, initial=0.0)), 1e-3))
+        cap = o["capacitance"]
+        charged = [e for e in data.dataset if e.has("charge") and e.has("displacement")]
+        if cap is None and charged:  # q - T x = C V_p, V_p = V - sum_j a_j S_j[V] to first order
+            vp = np.concatenate([np.asarray(e.v_in, float) - (_stops(np.asarray(e.v_in, float), widths) @ a if n
+                                                              else 0.0) for e in charged])
+            rest = np.concatenate([np.asarray(e["charge"], float) - t * np.asarray(e["displacement"], float)
+                                   for e in charged])
+            cap = chord(vp, rest)
+            cap = cap if cap > 0 else chord(vp, rest + t * np.concatenate([np.asarray(e["displacement"], float)
+                                                                           for e in charged]))
+        if cap is None or not cap > 0:
+            raise PiezojaxValueError(f"{config.source}: [model] capacitance: give it explicitly, or fit on data "
+                                     "files with a 'charge' column")
+        # element j moves with the charge, dq = (C + T^2/k) dV_p quasi-statically: C_j = (C + T^2/k)/a_j
+        c_eff = cap + t**2 / k
+        return {"b": b, "k": k, "capacitance": cap, "t_em": np.r_[t, np.zeros(o["degree"])],
+                "element_capacitances": c_eff / a, "breakaway_voltages": a * widths}
+
+    @staticmethod
+    def missing_keys(o) -> tuple[str, ...]:
+        return ("b", "k", "capacitance", "t_em") + (
+            ("element_capacitances", "breakaway_voltages") if o["elements"] else ())
+
+    def build(self, config, blocks, data):
+        o = config.model_options
+        v = self._start(config, data) | {k: o[k] for k in self.missing_keys(o) if o[k] is not None}
+        empty = np.zeros(0)
+        return pj.ElectromechanicalActuator(
+            f64(o["m"]), f64(v["b"]), f64(v["k"]), f64(v["capacitance"]), f64(v["t_em"]),
+            f64(v["element_capacitances"] if o["elements"] else empty),
+            f64(v["breakaway_voltages"] if o["elements"] else empty))
+
+    def constraints(self, config):
+        return {"b": pj.Positive, "k": pj.Positive, "capacitance": pj.Positive} | (
+            {"element_capacitances": pj.Positive, "breakaway_voltages": pj.Positive}
+            if config.model_options["elements"] else {})
+
+    def default_free(self, config):
+        return ("b", "k", "t_em", "capacitance") + (
+            ("element_capacitances", "breakaway_voltages") if config.model_options["elements"] else ())
+
+    def fit_free(self, config, free, targets):
+        if targets is not None and "charge" not in targets:
+            # without the charge, C is nearly redundant with the element capacitances (only the ratio C/C_j and the
+            # small term T x / C of the charge separate them)
+            free = [p for p in free if p != "capacitance"]
+        return free
+
+
+register_model_kind(BoucWenOscillatorKind())
+register_model_kind(ElectromechanicalKind())

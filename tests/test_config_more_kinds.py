@@ -1,0 +1,223 @@
+"""The play, LTI-creep, Bouc–Wen-oscillator and electromechanical kinds and the observers' offsets: configured,
+started from data, fitted (parameter recovery on plants simulated with known values) and run through the CLI."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fitting
+import piezojax as pj
+from fitting._config import parse_config
+from piezojax._checks import PiezojaxValueError
+
+
+def _fit(cfg, ds, max_steps, starts=None):
+    targets = cfg.fit_targets(ds)
+    models = starts if starts is not None else [cfg.build(ds)]
+    return fitting.fit(models[0], ds, predictor=cfg.predictor(), free=cfg.fit_free(targets), max_steps=max_steps,
+                       progress=False, starts=models if len(models) > 1 else None)
+
+
+def _rmse(result, cfg, experiment, channel="displacement"):
+    y = fitting.predict(result.model, experiment, predictor=cfg.predictor())[channel]
+    return float(np.sqrt(np.mean((y - np.asarray(experiment[channel])) ** 2)))
+
+
+# ------------------------------------------------------------------------------------------ play + LTI creep
+
+
+@pytest.fixture(scope="module")
+def play_plant():
+    """Two backlashes (no linear term) and a two-pole LTI creep in parallel, 1 kHz, noise 0.1 % of the range."""
+    fs, n = 1000.0, 2000
+    t = np.arange(n) / fs
+    v = 80 * np.sin(2 * np.pi * t) * np.exp(-0.3 * t) + 10 * (t > 1.2)
+    truth = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.6, 0.3]), jnp.array([5.0, 20.0]), w0=0.0),
+                        pj.LinearCreep(pj.StableTransferFunction(0.05, poles=[-2.0, -20.0], zeros=[-5.0])))
+    y = np.asarray(truth.simulate(jnp.asarray(v), 1 / fs).displacement)
+    noise = 1e-3 * np.ptp(y)
+    rng = np.random.default_rng(0)
+    exp = fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y + noise * rng.standard_normal(n))
+    return fitting.Dataset([exp]), noise
+
+
+def test_play_and_linear_creep_kinds_recover_a_backlash_plant(play_plant):
+    ds, noise = play_plant
+    cfg = parse_config('[hysteresis]\nkind = "play"\nplays = 2\n[creep]\nkind = "linear"\norder = 2\n'
+                       '[state]\noffset = false\n', "play.toml")
+    assert cfg.default_free() == ("hysteresis.weights", "hysteresis.thresholds", "creep.system.poles",
+                                  "creep.system.zeros", "creep.system.gain")
+    res = _fit(cfg, ds, 150, starts=cfg.starts(ds))
+    m = pj.unwrap(res.model)
+    assert float(m.hysteresis.w0) == 0.0  # a play kind has no linear term
+    np.testing.assert_allclose(m.hysteresis.thresholds, [5.0, 20.0], rtol=0.02)
+    np.testing.assert_allclose(m.hysteresis.weights, [0.6, 0.3], rtol=0.02)
+    np.testing.assert_allclose(np.sort(m.creep.system.poles), [-20.0, -2.0], rtol=0.1)
+    assert _rmse(res, cfg, ds[0]) < 1.2 * noise
+
+
+def test_linear_creep_start_is_the_kelvin_voigt_creep_it_is_written_from(play_plant):
+    """The LTI creep's start is the Kelvin–Voigt start as a transfer function: the same response (series and
+    parallel), poles at -1/tau and real zeros between them."""
+    ds, _ = play_plant
+    v = jnp.asarray(ds[0].v_in)
+    for structure, k0 in (("parallel", None), ("series", 1.0)):
+        extra = f'structure = "{structure}"\n'
+        lin = parse_config(f'[hysteresis]\nkind = "play"\n[creep]\nkind = "linear"\norder = 3\n{extra}', "l.toml")
+        kv = parse_config(f'[hysteresis]\nkind = "play"\n[creep]\nkind = "kelvin_voigt"\norder = 3\n{extra}',
+                          "k.toml")
+        from fitting._kinds import StartData
+
+        data = StartData(lin, ds, use_cold_start=False)
+        vals = lin.kind("creep").start(lin.creep_options, data)
+        kv_vals = kv.kind("creep").start(kv.creep_options, StartData(kv, ds, use_cold_start=False))
+        creep_kv = pj.KelvinVoigtCreep(kv_vals["stiffnesses"], kv_vals["time_constants"], k0=k0)
+        creep_lin = lin.kind("creep").build(lin.creep_options, vals, lin)
+        np.testing.assert_allclose(np.sort(vals["poles"]), np.sort(-1 / kv_vals["time_constants"]), rtol=1e-12)
+        assert vals["zeros"].size == (3 if structure == "series" else 2)
+        assert np.all(vals["zeros"] < 0)
+        a = np.asarray(creep_kv.simulate(v, ds[0].dt))
+        b = np.asarray(creep_lin.simulate(v, ds[0].dt))
+        np.testing.assert_allclose(b, a, atol=1e-9 * np.max(np.abs(a)))
+
+
+def test_linear_creep_options_are_checked():
+    with pytest.raises(PiezojaxValueError, match=r"\[creep\] real_zeros: .*as many zeros as poles \(2\), got 1"):
+        parse_config('[hysteresis]\nkind = "play"\n[creep]\nkind = "linear"\norder = 2\nreal_zeros = 1\n'
+                     'structure = "series"\n', "c.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[creep\] zeros: has 2 entries; at most 1"):
+        parse_config('[creep]\nkind = "linear"\norder = 2\nzeros = [-1.0, -2.0]\n', "c.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[creep\] poles: entries must be < 0"):
+        parse_config('[creep]\nkind = "linear"\npoles = [1.0]\n', "c.toml")
+
+
+# ------------------------------------------------------------------------------------------ [model] kinds
+
+
+def _oscillator_record(n, seed, fs=750.0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    u = (40 * np.sin(2 * np.pi * (3 + seed) * t) * np.minimum(1, t) + 15 * np.sin(2 * np.pi * 37 * t + 1 + seed)
+         + 10 * np.sin(2 * np.pi * 61 * t))
+    y = np.asarray(pj.BoucWenOscillator().simulate(u, 1 / fs, hold="linear", rtol=1e-10))
+    return t, u, y + 1e-6 * rng.standard_normal(n)
+
+
+def test_bouc_wen_oscillator_kind_through_the_command_line(tmp_path):
+    """`[model] kind = "bouc_wen_oscillator"` with the benchmark's column names: fitted from its data-driven start,
+    the benchmark's nominal values recovered within 3 standard errors, the held-out record predicted to the noise."""
+    for name, n, seed in (("train", 2000, 0), ("test", 1500, 1)):
+        t, u, y = _oscillator_record(n, seed)
+        np.savetxt(tmp_path / f"{name}.csv", np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
+    (tmp_path / "bw.toml").write_text('[model]\nkind = "bouc_wen_oscillator"\nbeta = 1000.0\n'
+                                      '[data]\ncolumns = {u = "v_in", y = "displacement"}\n')
+    from fitting.cli import main
+
+    assert main(["fit", str(tmp_path / "bw.toml"), str(tmp_path / "train.csv"), "--out", str(tmp_path / "fit"),
+                 "--quiet", "--no-figures"]) == 0
+    import json
+
+    result = json.loads((tmp_path / "fit" / "result.json").read_text())
+    assert result["success"]
+    nominal = {"m": 2.0, "c": 10.0, "k": 5e4, "alpha": 5e4, "gamma": 0.8, "delta": -1.1}
+    for k, truth in nominal.items():
+        p = result["parameters"][k]
+        assert p["std_error_status"] == "finite"
+        assert abs(p["value"] - truth) < 3 * p["std_error"] + 1e-9 * abs(truth), (k, p)
+    assert main(["predict", str(tmp_path / "fit"), str(tmp_path / "test.csv"), "--out",
+                 str(tmp_path / "pred")]) == 0
+    metrics = json.loads((tmp_path / "pred" / "metrics.json").read_text())["metrics"]
+    assert metrics["test"]["displacement"]["rmse"] < 1.1e-6  # the noise is 1e-6
+
+
+def test_electromechanical_kind_recovers_the_mechanics_from_displacement_and_charge():
+    """Paper 003's model from its data-driven start: stiffness, coupling and capacitance within a few per cent,
+    displacement and charge fitted to about the noise."""
+    fs, n = 1e4, 2000
+    t = np.arange(n) / fs
+    u = 50 * np.sin(2 * np.pi * 10 * t) * np.exp(-5 * t) + 20 * (t > 0.1) - 35 * (t > 0.15)
+    truth = pj.ElectromechanicalActuator(m=0.01, b=5.0, k=1e5, capacitance=1e-6, t_em=[0.5],
+                                         element_capacitances=np.full(4, 2e-6),
+                                         breakaway_voltages=np.arange(1.0, 5.0))
+    out = truth.simulate(u, 1 / fs, substeps=8)
+    x, q = np.asarray(out["x"]), np.asarray(out["q"])
+    nx, nq = 1e-3 * np.ptp(x), 1e-3 * np.ptp(q)
+    rng = np.random.default_rng(0)
+    exp = fitting.Experiment.from_arrays(t=t, v_in=u, displacement=x + nx * rng.standard_normal(n),
+                                         charge=q + nq * rng.standard_normal(n))
+    ds = fitting.Dataset([exp])
+    cfg = parse_config('[model]\nkind = "electromechanical"\nm = 0.01\n', "e.toml")
+    assert cfg.outputs == ("displacement", "charge")
+    assert cfg.fit_free(("displacement",)) == ["b", "k", "t_em", "element_capacitances", "breakaway_voltages"]
+    start = pj.unwrap(cfg.build(ds))
+    assert 0.5e5 < float(start.k) < 2e5 and 0.25e-6 < float(start.capacitance) < 4e-6  # within a few times
+    res = _fit(cfg, ds, 120)
+    m = pj.unwrap(res.model)
+    np.testing.assert_allclose([float(m.k), float(m.t_em[0]), float(m.capacitance)], [1e5, 0.5, 1e-6], rtol=0.06)
+    assert _rmse(res, cfg, exp) < 2.5 * nx
+    assert _rmse(res, cfg, exp, "charge") < 2.5 * nq
+
+
+def test_model_kind_options_are_checked():
+    with pytest.raises(PiezojaxValueError, match=r"\[model\] m: missing"):
+        parse_config('[model]\nkind = "electromechanical"\n', "e.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[model\] kind: unknown kind 'sensor_layer'; allowed kinds: "
+                                                 r"bouc_wen_oscillator, electromechanical"):
+        parse_config('[model]\nkind = "sensor_layer"\n', "e.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[observer\] and \[model\] both name a whole model"):
+        parse_config('[model]\nkind = "bouc_wen_oscillator"\n[observer]\nkind = "sensor_layer"\n', "e.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[hysteresis\] is not used by the bouc wen oscillator model"):
+        parse_config('[model]\nkind = "bouc_wen_oscillator"\n[hysteresis]\nkind = "play"\n', "e.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[model\] hold: unknown value 'foh'"):
+        parse_config('[model]\nkind = "bouc_wen_oscillator"\nhold = "foh"\n', "e.toml")
+    with pytest.raises(PiezojaxValueError, match=r"\[model\] coupling_degree: has 2 coefficients"):
+        parse_config('[model]\nkind = "electromechanical"\nm = 1.0\nt_em = [1.0, 0.1]\ncoupling_degree = 2\n',
+                     "e.toml")
+    cfg = parse_config('[model]\nkind = "electromechanical"\nm = 1.0\nelements = 0\n', "e.toml")
+    assert cfg.missing_values() == ["[model] b", "[model] k", "[model] capacitance", "[model] t_em"]
+    with pytest.raises(PiezojaxValueError, match=r"\[model\] capacitance: give it explicitly, or fit on data files "
+                                                 r"with a 'charge' column"):
+        t = np.arange(500) * 1e-4
+        v = 10 * np.sin(2 * np.pi * 20 * t)
+        cfg.build(fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=1e-6 * v)]))
+
+
+# ------------------------------------------------------------------------------------------ observer offsets
+
+
+def test_observer_offsets_are_model_parameters():
+    v = jnp.linspace(0.0, 10.0, 50)
+    v_out = 0.01 * v
+    layer = pj.SensorLayerObserver(1.6e-12, 104e-12, 6.3e6, 5e7, crosstalk=-3e-4)
+    shifted = pj.SensorLayerObserver(1.6e-12, 104e-12, 6.3e6, 5e7, crosstalk=-3e-4, offset=2e-6)
+    np.testing.assert_allclose(shifted(v, v_out, 1e-3).displacement - layer(v, v_out, 1e-3).displacement, 2e-6,
+                               rtol=1e-6)
+    np.testing.assert_allclose(shifted(v, v_out, 1e-3).force, layer(v, v_out, 1e-3).force)
+    G = pj.StableTransferFunction(1e-7, omega=[2e3], zeta=[0.5])
+    dyn = pj.DynamicImpedanceObserver(1e6, 4.2e-9, 0.66e-9, 0.0, 0.8971, 6.9067e7, G)
+    dyn_off = pj.DynamicImpedanceObserver(1e6, 4.2e-9, 0.66e-9, 0.0, 0.8971, 6.9067e7, G, offset=-3e-7)
+    np.testing.assert_allclose(dyn_off(v, v_out, 1e-3).displacement - dyn(v, v_out, 1e-3).displacement, -3e-7,
+                               rtol=1e-6)
+    with pytest.raises(PiezojaxValueError, match="offset"):
+        pj.SensorLayerObserver(1.6e-12, 104e-12, 6.3e6, 5e7, offset=float("nan"))
+
+
+def test_sensor_layer_offset_from_config_is_started_and_fitted():
+    truth = pj.SensorLayerObserver(1.6e-12, 104e-12, 6.3e6, 5e7, crosstalk=-3e-4, offset=3e-6)
+    t = np.arange(400) * 1e-3
+    v_a = 50 * np.sin(2 * np.pi * 2 * t)
+    v_s = 0.3 * np.sin(2 * np.pi * 2 * t + 0.3) + 0.05 * np.sin(2 * np.pi * 7 * t)
+    est = truth(jnp.asarray(v_a), jnp.asarray(v_s), 1e-3)
+    exp = fitting.Experiment.from_arrays(t=t, v_in=v_a, v_out=v_s, displacement=np.asarray(est.displacement),
+                                         force=np.asarray(est.force))
+    ds = fitting.Dataset([exp])
+    base = ('[observer]\nkind = "sensor_layer"\nd33 = 1.0e-12\namplifier_capacitance = 104e-12\nk_p = 6.3e6\n'
+            'k_s = 3e7\n')
+    assert "offset" not in parse_config(base, "s.toml").default_free()  # the paper's estimate has none
+    cfg = parse_config(base + "[state]\noffset = true\n", "s.toml")
+    assert cfg.default_free() == ("d33", "k_s", "crosstalk", "offset")
+    res = _fit(cfg, ds, 100)
+    m = pj.unwrap(res.model)
+    np.testing.assert_allclose([float(m.offset), float(m.crosstalk)], [3e-6, -3e-4], rtol=1e-5)
+    with pytest.raises(PiezojaxValueError, match=r"\[state\] prehistory"):
+        parse_config(base + "[state]\nprehistory = true\n", "s.toml")
