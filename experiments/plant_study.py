@@ -253,6 +253,8 @@ def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_
         return row
     result = json.loads((data / "fit" / "result.json").read_text())
     row["verdict"] = result.get("code", "?")
+    reseeded = result.get("cli", {}).get("reseeded")
+    row["reseeded"] = None if reseeded is None else f"{reseeded['elements']} {'kept' if reseeded['kept'] else 'no'}"
     train_rmse = [m["displacement"]["rmse"] for m in result["metrics"].values()]
     row["train"] = float(np.sqrt(np.mean(np.square(train_rmse)))) / sigma
     code, text = _cli(["predict", str(data / "fit"), *test, "--out", str(data / "predict")])
@@ -276,7 +278,8 @@ def _print_row(row: dict) -> None:
     rec_text = f"  z_max {rec['z_max']:.2f} ({rec['worst']}; {len(rec['skipped'])} without error)" if rec else ""
     print(f"{row['case']:<6} {row['draw']:>4}  {row['train']:6.2f}  "
           + "  ".join(f"{held.get(k, math.nan):7.2f}" for k in ("test_decaying_sine", "test_multisine"))
-          + f"  {row['verdict']:<26} {row['time_s']:6.1f}{rec_text}", flush=True)
+          + f"  {row['verdict']:<26} {row['time_s']:6.1f}{rec_text}"
+          + (f"  re-seeded {row['reseeded']}" if row.get("reseeded") else ""), flush=True)
 
 
 def summary(rows: list[dict]) -> dict[str, dict]:

@@ -295,6 +295,26 @@ class ModelConfig:
             models.sort(key=lambda m: _start_error(m, dataset))
         return [self._constrain(m) for m in models]
 
+    def reseeded(self, model, dataset, free) -> tuple[object, int] | None:
+        """The fitted `model` with the hysteresis kind's dead elements re-seeded (`BlockKind.reseed`), reparametrised
+        as `build` returns it, and how many moved; `None` when none is dead, the kind does not re-seed, or `free`
+        does not fit both the weights and the thresholds of the hysteresis."""
+        if "hysteresis" not in self._block_tables() or self.hysteresis_kind.empty:
+            return None
+        where = self._block_path("hysteresis")
+        if not all(any(f"{where}.{a}" == p or f"{where}.{a}".startswith(p + ".") for p in free)
+                   for a in ("weights", "thresholds")):
+            return None
+        plain = pj.unwrap(model)
+        get = _getter(where.split("."))
+        block = get(plain)
+        vmax = max(float(np.max(np.abs(np.asarray(e.v_in)))) for e in dataset)
+        new = self.hysteresis_kind.reseed(self.hysteresis_options, block, vmax)
+        if new is None:
+            return None
+        moved = int(np.sum(~np.isin(np.asarray(new.thresholds), np.asarray(block.thresholds))))
+        return self._constrain(eqx.tree_at(get, plain, new)), moved
+
     def _assemble(self, data: StartData | None):
         blocks = {"hysteresis": None, "creep": None, "dynamics": None}
         for table in self._block_tables():

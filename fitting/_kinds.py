@@ -386,6 +386,11 @@ class BlockKind:
         """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
         return 1
 
+    def reseed(self, o: dict, block, max_input: float):
+        """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
+        act, or `None` when none is dead or the kind does not re-seed (default)."""
+        return None
+
     def optional_start(self, o: dict, data: StartData) -> dict:
         """Values for the parameters a forward simulation does not need, when only those are missing (default:
         `start`; kinds whose `start` needs more data than these override it)."""
@@ -522,6 +527,13 @@ class PrandtlIshlinskiiKind(BlockKind):
     def cold_start_args(self, o, config):
         return {"n_plays": o["plays"]}
 
+    def reseed(self, o, block, max_input):
+        r"""Dead plays — weight below $10^{-4}$ of the largest, or threshold at or above the largest $|v|$ (the play
+        never moves) — moved one by one to the middle of the widest gap between the live thresholds on
+        $[0, \max|v|]$, at 1 % of the live plays' mean weight (small, so the re-seeded model starts where the fit
+        ended, and not zero, so the play's threshold has a gradient)."""
+        return _reseed_plays(block, max_input)
+
     def from_cold_start(self, o, block):
         return {"weights": np.asarray(block.weights), "thresholds": np.asarray(block.thresholds),
                 "w0": float(block.w0)}
@@ -573,6 +585,28 @@ class PlayKind(BlockKind):
 
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
+
+    def reseed(self, o, block, max_input):
+        """As `prandtl_ishlinskii`'s."""
+        return _reseed_plays(block, max_input)
+
+
+def _reseed_plays(block, max_input: float):
+    w, r = np.asarray(block.weights, float), np.asarray(block.thresholds, float)
+    dead = (w < 1e-4 * max(float(np.max(w, initial=0.0)), TINY)) | (r >= max_input)
+    if not dead.any() or dead.all() or not max_input > 0:
+        return None
+    live_r, live_w = r[~dead], w[~dead]
+    new_r = list(live_r)
+    for _ in range(int(dead.sum())):
+        pts = np.r_[0.0, np.sort(new_r), max_input]
+        i = int(np.argmax(np.diff(pts)))
+        new_r.append(0.5 * (pts[i] + pts[i + 1]))
+    new_w = np.r_[live_w, np.full(int(dead.sum()), 0.01 * float(np.mean(live_w)))]
+    order = np.argsort(new_r)
+    return eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
+                       (jnp.asarray(new_w[order], block.weights.dtype),
+                        jnp.asarray(np.asarray(new_r)[order], block.thresholds.dtype)))
 
 
 class BoucWenKind(BlockKind):

@@ -548,6 +548,28 @@ def _check_memory(config, dataset, num_free: int) -> None:
                      "resample the records, split long ones, or fit fewer parameters")
 
 
+def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
+    """One more fit from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the
+    fit left without weight or above the largest voltage); the lower cost is kept. Returns the result kept and, for
+    `result.json`, what was done (`None` when nothing was dead)."""
+    import fitting
+    from fitting._solve import _HARD
+
+    again = config.reseeded(result.model, dataset, free)
+    if again is None:
+        return result, None
+    model, moved = again
+    _info(f"{moved} dead hysteresis element(s) re-seeded where the live ones leave the widest gaps; fitting again",
+          quiet)
+    second = fitting.fit(model, dataset, **fit_args)
+    kept = second.code == "interrupted" or (second.code not in _HARD and second.cost < result.cost)
+    info = {"elements": moved, "cost_before": float(result.cost), "cost_after": float(second.cost),
+            "steps": int(second.steps), "kept": bool(kept)}
+    _info(f"re-seeded fit: cost {second.cost:.6e} against {result.cost:.6e}; "
+          f"{'kept' if kept else 'the first fit kept'}", quiet)
+    return (second if kept else result), info
+
+
 def _safe_name(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
@@ -604,11 +626,12 @@ def _cmd_fit(args) -> int:
             else:
                 _info(f"{len(starts)} starts (rule-based and joint cold start) fitted together; the best is kept",
                       quiet)
-        result = fitting.fit(
-            starts[0], dataset, predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
-            smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method,
-            starts=starts if len(starts) > 1 else None,
-        )
+        fit_args = dict(predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
+                        smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method)
+        result = fitting.fit(starts[0], dataset, starts=starts if len(starts) > 1 else None, **fit_args)
+        reseeded = None
+        if result.code != "interrupted":
+            result, reseeded = _reseed(config, result, dataset, free, fit_args, quiet)
         if result.code == "interrupted":
             _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
         extra = {
@@ -628,6 +651,8 @@ def _cmd_fit(args) -> int:
             },
             "warnings": unit_warnings + start_warnings,
         }
+        if reseeded is not None:
+            extra["cli"]["reseeded"] = reseeded
         _info(f"writing {out}", quiet)
         result.write_files(tmp, figures=not args.no_figures, extra=extra)
         fitting.atomic_write_text(tmp / "config.toml", config.text)

@@ -221,3 +221,51 @@ def test_sensor_layer_offset_from_config_is_started_and_fitted():
     np.testing.assert_allclose([float(m.offset), float(m.crosstalk)], [3e-6, -3e-4], rtol=1e-5)
     with pytest.raises(PiezojaxValueError, match=r"\[state\] prehistory"):
         parse_config(base + "[state]\nprehistory = true\n", "s.toml")
+
+
+# ------------------------------------------------------------------------------------------ dead plays re-seeded
+
+
+def test_dead_plays_are_moved_to_the_widest_gaps():
+    from fitting._kinds import _reseed_plays
+
+    pi = pj.PrandtlIshlinskii(jnp.array([1.0, 1e-9, 0.5]), jnp.array([1.0, 2.0, 20.0]), w0=0.3)
+    new = _reseed_plays(pi, 10.0)  # the second is dead by weight, the third never moves (threshold above 10 V)
+    np.testing.assert_allclose(new.thresholds, [1.0, 3.25, 5.5])
+    np.testing.assert_allclose(new.weights, [1.0, 0.01, 0.01])
+    assert float(new.w0) == 0.3
+    assert _reseed_plays(pj.PrandtlIshlinskii(jnp.array([1.0, 0.5]), jnp.array([1.0, 2.0])), 10.0) is None
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n', "pi.toml")
+    model = cfg._constrain(pj.Actuator(pi))
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=np.arange(5.0), v_in=[0.0, 10, -10, 5, 0],
+                                                         displacement=np.zeros(5))])
+    again, moved = cfg.reseeded(model, ds, ["hysteresis", "offset"])
+    assert moved == 2
+    np.testing.assert_allclose(pj.unwrap(again).hysteresis.thresholds, [1.0, 3.25, 5.5])
+    assert type(again.hysteresis.thresholds) is type(model.hysteresis.thresholds)  # still reparametrised
+    assert cfg.reseeded(model, ds, ["hysteresis.weights"]) is None  # thresholds fixed: nothing to move
+
+
+def test_the_command_line_refits_from_re_seeded_plays_and_keeps_the_better(tmp_path):
+    """Twelve plays on a three-play plant: the fit leaves plays dead, the CLI fits again from them re-seeded and
+    keeps the lower cost; result.json says what was done."""
+    import json
+
+    from fitting.cli import main
+
+    fs, n = 500.0, 1500
+    t = np.arange(n) / fs
+    v = 100 * np.sin(2 * np.pi * 1.5 * t) * np.exp(-0.5 * t)
+    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 0.1]), jnp.array([10.0, 30.0, 60.0]), w0=0.5)
+    y = np.asarray(truth(jnp.asarray(v))) * 1e-7
+    y = y + 1e-3 * np.ptp(y) * np.random.default_rng(1).standard_normal(n)
+    np.savetxt(tmp_path / "d.csv", np.column_stack([t, v, y]), delimiter=",", header="t,v_in,displacement",
+               comments="")
+    (tmp_path / "pi.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 12\n')
+    assert main(["fit", str(tmp_path / "pi.toml"), str(tmp_path / "d.csv"), "--out", str(tmp_path / "fit"),
+                 "--quiet", "--no-figures"]) in (0, 1)
+    result = json.loads((tmp_path / "fit" / "result.json").read_text())
+    info = result["cli"]["reseeded"]
+    assert info["elements"] >= 1
+    assert result["cost"] == pytest.approx(min(info["cost_before"], info["cost_after"]), rel=1e-12)
+    assert info["kept"] == (info["cost_after"] < info["cost_before"])
