@@ -12,13 +12,11 @@ data-dependent size, so it is plain NumPy/SciPy (not jit-able, not differentiabl
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
-import scipy.optimize
 import scipy.signal
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
-from piezojax._hysteresis.initialise import contiguous_runs
+from piezojax._hysteresis.initialise import MAX_ROWS, contiguous_runs, nnls_gram, row_subset
 
 # ----------------------------------------------------------------------------------------------------------------
 # linear building blocks (NumPy mirrors of the models' exact ZOH recursions)
@@ -63,31 +61,6 @@ def _filter_pairs(x: np.ndarray, dt: float, omega: np.ndarray, zeta: np.ndarray)
     return np.concatenate([np.zeros_like(y[:1]), y[:-1]], axis=0)
 
 
-def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    r"""Non-negative least squares $\min_{x \ge 0}\|Ax - b\|$ through the small Gram system.
-
-    Columns are equilibrated (they span many decades), $A^\top A = R^\top R$ (Cholesky, with a $10^{-12}$ ridge on
-    the unit diagonal for nearly collinear neighbouring plays, raised up to $10^{-6}$ for identical ones), and
-    `scipy.optimize.nnls` runs on $\|Rx - R^{-\top}A^\top b\|$, which differs from $\|Ax - b\|^2$ by a
-    constant. The products use `einsum` (no multithreaded BLAS: on a loaded machine its spinning threads made a
-    32000 × 66 QR take seconds)."""
-    norms = np.sqrt(np.einsum("ij,ij->j", a, a))
-    norms = np.where(norms > 0, norms, 1.0)
-    an = a / norms
-    gram = np.einsum("ij,ik->jk", an, an)
-    for ridge in (1e-12, 1e-10, 1e-8, 1e-6):  # identical columns (plays between the levels of held steps)
-        try:
-            r = np.linalg.cholesky(gram + ridge * np.eye(a.shape[1])).T
-            break
-        except np.linalg.LinAlgError:
-            continue
-    else:
-        raise np.linalg.LinAlgError("the design's Gram matrix is not positive definite even with a 1e-6 ridge")
-    rhs = scipy.linalg.solve_triangular(r, np.einsum("ij,i->j", an, b), trans="T")
-    coef, _ = scipy.optimize.nnls(r, rhs, maxiter=50 * a.shape[1])
-    return coef / norms
-
-
 def _clusters(weights: np.ndarray, grid: np.ndarray, n: int, rel: float, log: bool) -> np.ndarray:
     """Points of a dense non-negative fit reduced to `n`: runs of active grid points; while there are more than `n`,
     the lightest run (total weight) is merged into its nearest neighbour; each run's weight-averaged position
@@ -122,20 +95,18 @@ def _clusters(weights: np.ndarray, grid: np.ndarray, n: int, rel: float, log: bo
 # dynamics: ARX with a spectral fallback
 
 
-def _arx_lstsq(records, order: int, den: np.ndarray | None):
-    r"""One equation-error least squares (rows $k \ge n$), on $y$, $u$ prefiltered by $1/A(z)$ when `den` is given."""
+def _arx_lstsq(records, order: int, den: np.ndarray | None, max_rows: int | None = None):
+    r"""One equation-error least squares (rows $k \ge n$; at most `max_rows` of them, the same fixed random subset
+    on every call), on $y$, $u$ prefiltered by $1/A(z)$ when `den` is given."""
     rows, rhs = [], []
-    for u, y, _ in records:
-        n = y.size
-        if n <= order + 1:
-            continue
+    usable = [(u, y) for u, y, _ in records if y.size > order + 1]
+    keep = row_subset([y.size - order for _, y in usable], max_rows)
+    for (u, y), k in zip(usable, keep):
         if den is not None:
             u, y = scipy.signal.lfilter([1.0], den, u), scipy.signal.lfilter([1.0], den, y)
-        cols = [-y[order - i : n - i] for i in range(1, order + 1)] + [
-            u[order - i : n - i] for i in range(1, order + 1)
-        ]
-        rows.append(np.column_stack(cols))
-        rhs.append(y[order:])
+        k = np.arange(order, y.size)[k]
+        rows.append(np.column_stack([-y[k - i] for i in range(1, order + 1)] + [u[k - i] for i in range(1, order + 1)]))
+        rhs.append(y[k])
     if not rows:
         return None
     a = np.concatenate(rows)
@@ -147,7 +118,7 @@ def _arx_lstsq(records, order: int, den: np.ndarray | None):
     return np.concatenate([[1.0], coef[:order]])
 
 
-def _arx_pairs(records, order: int, iterations: int = 20):
+def _arx_pairs(records, order: int, iterations: int = 20, max_rows: int | None = None):
     r"""Discrete denominator by ARX least squares, $y_k = -\sum_{i=1}^{n} a_i y_{k-i} + \sum_{i=1}^{n} b_i
     u_{k-i} + e_k$, pooled over the records of one step `dt` (rows $k \ge n$), refined by Steiglitz–McBride
     iterations (the same least squares on $y$, $u$ prefiltered by $1/\hat A(z)$ of the previous estimate): plain
@@ -156,17 +127,17 @@ def _arx_pairs(records, order: int, iterations: int = 20):
     output-error estimate for white noise. Then the continuous poles $s = \ln z/dt$ of $z^n + a_1 z^{n-1} + \dots
     + a_n$: a complex pair gives $\omega = |s|$, $\zeta = -\mathrm{Re}\,s/|s|$. Returns `(omega, zeta)` of the
     `order/2` pole pairs, or `None` when a pole is unstable ($|z| \ge 1$), on the negative real axis (no
-    continuous-time equivalent), or the real poles cannot be paired."""
+    continuous-time equivalent), or the real poles cannot be paired. `max_rows`: see `_arx_lstsq`."""
     dt = records[0][2]
 
     def stable(den):
         return den is not None and np.all(np.isfinite(den)) and np.all(np.abs(np.roots(den)) < 1.0)
 
-    den = _arx_lstsq(records, order, None)
+    den = _arx_lstsq(records, order, None, max_rows)
     if not stable(den):
         return None
     for _ in range(iterations):
-        new = _arx_lstsq(records, order, den)
+        new = _arx_lstsq(records, order, den, max_rows)
         if not stable(new):
             break
         done = np.max(np.abs(new - den)) < 1e-10
@@ -239,11 +210,12 @@ def _highpassed(records, cutoff: float):
     return out
 
 
-def _dynamics_candidates(records, order: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def _dynamics_candidates(records, order: int, max_rows: int | None = None) -> list[tuple[str, np.ndarray, np.ndarray]]:
     r"""Candidate `(label, omega, zeta)` for the dynamics from the drive/output records of one step: the ARX of
     `_arx_pairs` on the raw records and on records high-passed at $f_s/1000$, $f_s/200$ and $f_s/50$ (see
     `_highpassed`), then the spectral peak (`_spectral_pairs`). A candidate that fails (an unstable or
-    non-physical estimate) is left out; the caller keeps the one that explains the data best."""
+    non-physical estimate) is left out; the caller keeps the one that explains the data best. Each regression uses
+    at most `max_rows` rows."""
     dt = records[0][2]
     out = []
     for label, recs in [("ARX", records)] + [
@@ -252,7 +224,7 @@ def _dynamics_candidates(records, order: int) -> list[tuple[str, np.ndarray, np.
         if not recs:
             continue
         try:
-            pairs = _arx_pairs(recs, order)
+            pairs = _arx_pairs(recs, order, max_rows=max_rows)
         except (np.linalg.LinAlgError, ValueError):
             pairs = None
         if pairs is not None:
@@ -281,15 +253,28 @@ def _records(dataset):
 
 
 def _design(v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray) -> np.ndarray:
-    """Design matrix `[v, P_r[v], L_tau[v]]` of one record, shape `(N, 1 + n + m)`."""
-    return np.column_stack([v, _play_columns(v, thresholds), _lag_columns(v, dt, taus)])
+    """Design matrix `[v, P_r[v], L_tau[v]]` of one record, shape `(N, 1 + n + m)`, filled in place (the plays 16 at
+    a time: a long record's dense design is the start's largest array, and is not copied)."""
+    n = thresholds.size
+    out = np.empty((v.size, 1 + n + taus.size))
+    out[:, 0] = v
+    for j in range(0, n, 16):
+        out[:, 1 + j : 1 + min(n, j + 16)] = _play_columns(v, thresholds[j : j + 16])
+    out[:, 1 + n :] = _lag_columns(v, dt, taus)
+    return out
 
 
-def _through(designs, recs, omega, zeta) -> np.ndarray:
-    """Every record's design columns passed through the dynamics (if identified), stacked over records."""
-    if omega is None:
-        return np.concatenate(designs)
-    return np.concatenate([_filter_pairs(a, dt, omega, zeta) for a, (_, _, dt) in zip(designs, recs)])
+def _through(designs, recs, omega, zeta, rows) -> np.ndarray:
+    """Every record's design columns passed through the dynamics (if identified; whole records, a few columns at a
+    time), at the least-squares rows `rows` (`row_subset`), stacked over records."""
+    out = []
+    for a, (_, _, dt), keep in zip(designs, recs, rows):
+        if omega is None:
+            out.append(a[keep])
+        else:
+            out.append(np.concatenate([_filter_pairs(a[:, j : j + 16], dt, omega, zeta)[keep]
+                                       for j in range(0, a.shape[1], 16)], axis=1))
+    return np.concatenate(out)
 
 
 def _strictly_ascending(x: np.ndarray, spacing: float) -> np.ndarray:
@@ -311,6 +296,7 @@ def cold_start_actuator(
     iterations: int = 2,
     min_weight_fraction: float = 1e-3,
     constrained: bool = True,
+    max_rows: int | None = MAX_ROWS,
 ):
     r"""Initial `pj.Actuator` (PI hysteresis + Kelvin–Voigt creep + stable dynamics) from displacement data alone.
 
@@ -375,6 +361,9 @@ def cold_start_actuator(
     - `iterations`: further passes of steps 1–4 through the identified dynamics.
     - `min_weight_fraction`: dense gains below this fraction of the largest count as zero when clustering.
     - `constrained`: return the reparametrised model (default) or the plain one.
+    - `max_rows`: every least squares above uses at most this many samples (default 200000), a fixed random subset
+      of each record's when the records are longer; the plays, lags and filters still run over whole records (they
+      carry the history). A 1e6-sample record starts in seconds and a few hundred MB; `None`: every sample.
 
     **Returns:** a `pj.Actuator`.
 
@@ -404,6 +393,8 @@ def cold_start_actuator(
         raise PiezojaxValueError(f"`iterations` must be an integer >= 0, got {iterations!r}")
     if not (isinstance(grid_factor, int) and grid_factor >= 1):
         raise PiezojaxValueError(f"`grid_factor` must be an integer >= 1, got {grid_factor!r}")
+    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
+        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
     recs = _records(dataset)
     vmax = max(float(np.max(np.abs(v))) for v, _, _ in recs)
     if not vmax > 0:
@@ -423,7 +414,8 @@ def cold_start_actuator(
         dt_counts[dt] = dt_counts.get(dt, 0) + v.size
     dt_arx = max(dt_counts, key=dt_counts.get)
     is_arx = [dt == dt_arx for _, _, dt in recs]
-    y_all = np.concatenate([y for _, y, _ in recs])
+    rows = row_subset([y.size for _, y, _ in recs], max_rows)
+    y_all = np.concatenate([y[k] for (_, y, _), k in zip(recs, rows)])
 
     # dense design: a threshold grid on (0, max|V|) and a log-spaced time-constant grid
     n_grid = grid_factor * n_plays
@@ -432,14 +424,14 @@ def cold_start_actuator(
     dense_raw = [_design(v, dt, r_grid, tau_grid) for v, _, dt in recs]
 
     def gains(raw, omega, zeta):
-        return _nnls_offset(_through(raw, recs, omega, zeta), y_all)
+        return _nnls_offset(_through(raw, recs, omega, zeta, rows), y_all)
 
     def compact_gains(compact_raw, taus, omega, zeta):
         """`(w, c)` of the compact design: parallel least squares, then the series gains from it."""
         coef = gains(compact_raw, omega, zeta)
         w, c = coef[: 1 + n_plays], coef[1 + n_plays :]
         if series:
-            w, c = _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays)
+            w, c = _series_gains(compact_raw, recs, rows, y_all, taus, omega, zeta, w, c, n_plays)
         return w, c
 
     omega = zeta = None
@@ -459,14 +451,15 @@ def cold_start_actuator(
         # explains the displacement best
         drives = [_drive(a, dt, taus, w, c, series, n_plays) for a, (_, _, dt) in zip(compact_raw, recs)]
         pairs = [(u, y, dt) for u, (_, y, dt), ok in zip(drives, recs, is_arx) if ok]
-        omega, zeta = _best_dynamics(_dynamics_candidates(pairs, dynamics_order), drives, recs, y_all)
+        omega, zeta = _best_dynamics(_dynamics_candidates(pairs, dynamics_order, max_rows), drives, recs, rows,
+                                     y_all)
     if npairs:  # 5. final gains through the final dynamics
         w, c = compact_gains(compact_raw, taus, omega, zeta)
 
     # strictly positive gains, so that the Positive reparametrisation can start from them; the floor is relative to
     # the data's own scale (|y| per volt), so that a fit that put no weight on the hysteresis still gives finite
     # creep stiffnesses (their inverses)
-    scale = float(np.max(np.abs(y_all))) / vmax if vmax > 0 else 1.0
+    scale = max(float(np.max(np.abs(y))) for _, y, _ in recs) / vmax
     top = max(float(np.max(w)), 1e-6 * scale, np.finfo(float).tiny)
     w0 = max(float(w[0]), 1e-3 * top)
     weights = np.maximum(w[1:], 1e-3 * top)
@@ -505,9 +498,9 @@ def cold_start_actuator(
 
 
 def _nnls_offset(a: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """`_nnls` with a free constant (a sensor offset, either sign) beside the non-negative columns, eliminated by
+    """`nnls_gram` with a free constant (a sensor offset, either sign) beside the non-negative columns, eliminated by
     removing every column's mean and the data's; returns the columns' coefficients."""
-    return _nnls(a - np.mean(a, axis=0), y - np.mean(y))
+    return nnls_gram(a - np.mean(a, axis=0), y - np.mean(y))
 
 
 def _drive(design: np.ndarray, dt: float, taus: np.ndarray, w: np.ndarray, c: np.ndarray, series: bool,
@@ -520,7 +513,7 @@ def _drive(design: np.ndarray, dt: float, taus: np.ndarray, w: np.ndarray, c: np
     return h + _lag_columns(h, dt, taus) @ c
 
 
-def _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays, sweeps: int = 4):
+def _series_gains(compact_raw, recs, rows, y_all, taus, omega, zeta, w, c, n_plays, sweeps: int = 4):
     r"""Hysteresis weights $w$ and dimensionless series creep gains $c_j$ of
     $\delta = G\big[(1 + \sum_j c_j L_{\tau_j})[H_w[V]]\big]$, bilinear in $(w, c)$: alternating non-negative
     least squares, $w$ for fixed $c$ (the columns $(1 + \sum c_j L_j)[P_{r_i}[V]]$), then $(a, a c)$ for fixed
@@ -536,26 +529,26 @@ def _series_gains(compact_raw, recs, y_all, taus, omega, zeta, w, c, n_plays, sw
     lags = [[_lag_columns(h[:, i], dt, taus) for i in range(h.shape[1])] for h, (_, _, dt) in zip(hyst, recs)]
     for _ in range(sweeps):
         cols = [h + np.stack([lag @ c for lag in lag_h], axis=1) for h, lag_h in zip(hyst, lags)]
-        w_new = _nnls_offset(_through(cols, recs, omega, zeta), y_all)
+        w_new = _nnls_offset(_through(cols, recs, omega, zeta, rows), y_all)
         if not np.any(w_new > 0):
             break
         w = w_new
         hs = [h @ w for h in hyst]
         cols = [np.column_stack([hh, _lag_columns(hh, dt, taus)]) for hh, (_, _, dt) in zip(hs, recs)]
-        coef = _nnls_offset(_through(cols, recs, omega, zeta), y_all)
+        coef = _nnls_offset(_through(cols, recs, omega, zeta, rows), y_all)
         if not coef[0] > 0:
             break
         w, c = w * coef[0], coef[1:] / coef[0]
     return w, c
 
 
-def _best_dynamics(candidates, drives, recs, y_all):
+def _best_dynamics(candidates, drives, recs, rows, y_all):
     """The candidate `(omega, zeta)` whose dynamics, applied to the drive (with a free scale and offset), leave the
     smallest residual of the displacement."""
     best, best_err = None, np.inf
     for _, omega, zeta in candidates:
         try:
-            out = _through([u[:, None] for u in drives], recs, omega, zeta)[:, 0]
+            out = _through([u[:, None] for u in drives], recs, omega, zeta, rows)[:, 0]
         except (np.linalg.LinAlgError, ValueError):
             continue
         a = np.column_stack([out, np.ones_like(out)])

@@ -38,6 +38,7 @@ import numpy as np
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
+from piezojax._hysteresis.initialise import MAX_ROWS, row_subset
 
 # Upper bounds on the sizes a CONFIG may ask for, checked before any work: beyond them the initialisation (dense
 # NNLS over plays x samples) or the fit's memory grows past what the method is meant for.
@@ -232,6 +233,15 @@ class StartData:
                                          "identified")
             self._records = recs
         return self._records
+
+    def rows(self) -> list:
+        """The rows a start's least squares use in each record: every row, or a fixed random subset of at most
+        `MAX_ROWS` (200000) in all for longer records (`row_subset`)."""
+        return row_subset([y.size for _, y, _ in self.records()], MAX_ROWS)
+
+    def sampled(self, per_record) -> np.ndarray:
+        """Per-record arrays (first axis: the record's samples) at `rows`, concatenated."""
+        return np.concatenate([np.asarray(a)[k] for a, k in zip(per_record, self.rows())])
 
     def inputs(self) -> np.ndarray:
         """Every record's voltage, concatenated."""
@@ -564,13 +574,14 @@ class PlayKind(BlockKind):
     def start(self, o, data):
         import scipy.optimize
 
-        n, recs, y = o["plays"], data.records(), data.outputs()
+        n, recs = o["plays"], data.records()
+        y = data.sampled([y for _, y, _ in recs])
         sign = 1.0 if data.static_gain() >= 0 else -1.0
         best = None
         for c in np.geomspace(0.02, 0.9, 10):
             r = c * data.max_input() * np.arange(1, n + 1) / n
             play = pj.PlayOperator(jnp.asarray(r))
-            a = np.concatenate([np.asarray(play(jnp.asarray(v))).reshape(v.size, n) for v, _, _ in recs])
+            a = data.sampled([np.asarray(play(jnp.asarray(v))).reshape(v.size, n) for v, _, _ in recs])
             a = np.column_stack([a, np.ones(a.shape[0]), -np.ones(a.shape[0])])  # a free offset
             w, res = scipy.optimize.nnls(a, sign * y)
             if best is None or res < best[0]:
@@ -650,8 +661,9 @@ class BoucWenKind(BlockKind):
         span = max(float(np.ptp(v)) for v, _, _ in recs) or data.max_input()
         betas, ratios = np.geomspace(0.1, 30.0, 12) / span, np.linspace(-0.8, 0.9, 8)
         bb, rr = (x.ravel() for x in np.meshgrid(betas, ratios))
-        zs = [np.asarray(_bouc_wen_grid(jnp.asarray(bb), jnp.asarray(bb * rr), jnp.asarray(v))) for v, _, _ in recs]
-        v_all, y_all = data.inputs(), data.outputs()
+        zs = [np.asarray(_bouc_wen_grid(jnp.asarray(bb), jnp.asarray(bb * rr), jnp.asarray(v)))[:, k]
+              for (v, _, _), k in zip(recs, data.rows())]
+        v_all, y_all = data.sampled([v for v, _, _ in recs]), data.sampled([y for _, y, _ in recs])
         best, best_err = None, np.inf
         for i in range(bb.size):
             z = np.concatenate([zz[i] for zz in zs])
@@ -717,8 +729,8 @@ class MaxwellSlipKind(BlockKind):
         # thresholds up to 1.2 max|v|: the widest elements stay elastic (the linear part of the response)
         r = 1.2 * data.max_input() * np.arange(1, n + 1) / n
         play = pj.PlayOperator(jnp.asarray(r))
-        a = np.concatenate([v[:, None] - np.asarray(play(jnp.asarray(v))) for v, _, _ in recs])
-        y = data.outputs()
+        a = data.sampled([v[:, None] - np.asarray(play(jnp.asarray(v))) for v, _, _ in recs])
+        y = data.sampled([y for _, y, _ in recs])
         sign = 1.0 if data.static_gain() >= 0 else -1.0
         k, _ = scipy.optimize.nnls(a, sign * y)
         k = np.maximum(k, 1e-3 * max(float(k.max()), TINY))

@@ -20,7 +20,7 @@ import scipy.optimize
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._initialise import _dynamics_candidates, _filter_pairs
+from ._initialise import MAX_ROWS, _dynamics_candidates, _filter_pairs
 from ._kinds import MAX_ELEMENTS, MAX_SUBSTEPS, TINY, chord, f64
 from ._model_kinds import ModelKind, register_model_kind
 from ._predict import Predictor
@@ -40,7 +40,7 @@ def _resonance(dataset, output: str) -> tuple[float, float, float]:
     dt = min(r[2] for r in recs)
     recs = [r for r in recs if r[2] == dt]
     best = None
-    for _, omega, zeta in _dynamics_candidates(recs, 2):
+    for _, omega, zeta in _dynamics_candidates(recs, 2, MAX_ROWS):
         if omega.size != 1 or not (np.isfinite(omega[0]) and np.isfinite(zeta[0])):
             continue
         u = np.concatenate([_filter_pairs(v, dt, omega, zeta) for v, _, _ in recs])
@@ -287,7 +287,7 @@ class ElectromechanicalKind(ModelKind):
             return coef[: widths.size + 1], res
 
         # each candidate resonance of the cold start's estimate; the one with the smallest residual
-        cands = [(w, z) for _, w, z in _dynamics_candidates(recs, 2) if w.size == 1]
+        cands = [(w, z) for _, w, z in _dynamics_candidates(recs, 2, MAX_ROWS) if w.size == 1]
         best = None
         for omega, zeta in cands + [(np.array([0.2 * np.pi / dt]), np.array([0.7]))]:
             coef, res = solve(grid, omega, zeta)

@@ -18,11 +18,11 @@ from fitting._initialise import (
     _arx_pairs,
     _filter_pairs,
     _lag_columns,
-    _nnls,
     _spectral_pairs,
     cold_start_actuator,
     cold_start_free,
 )
+from piezojax._hysteresis.initialise import nnls_gram, row_subset
 
 # ------------------------------------------------------------------------------------------------ building blocks
 
@@ -34,7 +34,7 @@ def test_nnls_matches_scipy(rng):
     b = a @ x_true - a[:, 9] * (x_true.max() + 1) + 1e-6 * rng.standard_normal(400)  # an active bound at column 9
     norms = np.linalg.norm(a, axis=0)
     ref = scipy.optimize.nnls(a / norms, b)[0] / norms
-    got = _nnls(a, b)
+    got = nnls_gram(a, b)
     assert np.all(got >= 0)
     assert got[9] == 0.0
     np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-12 * np.abs(ref).max())
@@ -75,6 +75,25 @@ def test_arx_steiglitz_mcbride_removes_noise_bias(resonant_records):
     # plain equation-error ARX (no refinement) is biased towards more damping: what the iterations fix
     _, zeta_plain = _arx_pairs(records, 2, iterations=0)
     assert abs(zeta_plain[0] / z - 1) > 3 * abs(zeta[0] / z - 1)
+
+
+def test_row_subset_is_fixed_sorted_and_proportional():
+    assert row_subset([10, 20], 30) == [slice(None), slice(None)]
+    assert row_subset([10, 20], None) == [slice(None), slice(None)]
+    rows = row_subset([1000, 3000, 0], 400)
+    assert [k.size for k in rows] == [100, 300, 0]
+    for k, n in zip(rows, [1000, 3000]):
+        assert np.all(np.diff(k) > 0) and k[0] >= 0 and k[-1] < n  # distinct, in order, inside the record
+    assert all(np.array_equal(a, b) for a, b in zip(rows, row_subset([1000, 3000, 0], 400)))  # the same every call
+    assert len(np.unique(rows[1] % 5)) == 5  # random, not a stride that could alias with a periodic signal
+
+
+def test_arx_on_a_row_subset(resonant_records):
+    # a quarter of the rows (the prefilters still run over whole records): the same pair within the noise
+    records, w, z = resonant_records
+    omega, zeta = _arx_pairs(records, 2, max_rows=3000)
+    assert abs(omega[0] / w - 1) < 4e-3
+    assert abs(zeta[0] / z - 1) < 0.06
 
 
 def test_spectral_fallback_finds_the_resonance(resonant_records):
@@ -136,6 +155,22 @@ def test_cold_start_uses_data_only_and_lands_near_truth(first):
     np.testing.assert_allclose(m.creep.stiffnesses, true.creep.stiffnesses, rtol=0.2)
     np.testing.assert_allclose(m.dynamics.omega, true.dynamics.omega, rtol=5e-3)
     np.testing.assert_allclose(m.dynamics.zeta, true.dynamics.zeta, rtol=0.03)
+
+
+def test_cold_start_on_a_row_subset_lands_as_near(first):
+    # a long record's start solves on a fixed random fifth of the samples; the same tolerances as on every sample
+    ds = fr.make_dataset(0, fr.clean_displacements())
+    total = sum(e.n for e in ds)
+    m = pj.unwrap(cold_start_actuator(ds, n_plays=6, creep_order=2, dynamics_order=2, max_rows=total // 5))
+    full, true = pj.unwrap(first[0]), fr.truth()
+    np.testing.assert_allclose(m.hysteresis.thresholds, true.hysteresis.thresholds, atol=4.0)
+    np.testing.assert_allclose(m.hysteresis.weights, true.hysteresis.weights, rtol=0.3)
+    np.testing.assert_allclose(m.creep.time_constants, true.creep.time_constants, rtol=0.3)
+    np.testing.assert_allclose(m.dynamics.omega, true.dynamics.omega, rtol=5e-3)
+    np.testing.assert_allclose(m.dynamics.zeta, true.dynamics.zeta, rtol=0.05)
+    assert not np.allclose(m.hysteresis.weights, full.hysteresis.weights, rtol=1e-9, atol=0)  # the subset was used
+    with pytest.raises(ValueError, match="max_rows"):
+        cold_start_actuator(ds, 3, 1, max_rows=0)
 
 
 def test_joint_fit_recovers_every_parameter_within_3_se(first):

@@ -4,10 +4,12 @@ These run once before a nonlinear fit, on concrete numpy data of data-dependent 
 numpy/scipy functions (not jit-able and not differentiable, on purpose).
 """
 
+import functools
 from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 from jaxtyping import ArrayLike
 
@@ -37,11 +39,65 @@ def _as_records(signals, outputs) -> list[tuple[np.ndarray, np.ndarray]]:
     return records
 
 
-def _design(records, thresholds):
-    """Rows [v, P_r1[v], ..., P_rn[v]] for every sample of every record (demagnetised start)."""
+MAX_ROWS = 200_000
+
+
+def row_subset(sizes: Sequence[int], max_rows: int | None, seed: int = 0) -> list:
+    """Rows of a least squares over records of the given `sizes` to keep within `max_rows` in all: every row
+    (`slice(None)` per record) when they fit, else the same fraction of each record's rows, drawn at random (a
+    fixed `seed`: the same rows on every call) and in order. Initial values are heuristics whose accuracy is set by
+    a few hundred thousand rows, not millions; the signals themselves (play outputs, filters) are still computed
+    on whole records, since they carry the history."""
+    return list(_row_subset(tuple(int(n) for n in sizes), max_rows, seed))
+
+
+@functools.lru_cache(maxsize=8)
+def _row_subset(sizes: tuple[int, ...], max_rows: int | None, seed: int) -> tuple:
+    # cached: the alternating least squares of a start ask for the same rows many times (read-only index arrays)
+    if max_rows is None or sum(sizes) <= max_rows:
+        return (slice(None),) * len(sizes)
+    rng = np.random.default_rng(seed)
+    frac = max_rows / sum(sizes)
+    out = []
+    for n in sizes:
+        k = np.sort(rng.choice(n, size=max(1, int(round(frac * n))), replace=False)) if n else np.zeros(0, int)
+        k.flags.writeable = False
+        out.append(k)
+    return tuple(out)
+
+
+def nnls_gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    r"""Non-negative least squares $\min_{x \ge 0}\|Ax - b\|$ through the small Gram system.
+
+    Columns are equilibrated (they span many decades), $A^\top A = R^\top R$ (Cholesky, with a $10^{-12}$ ridge on
+    the unit diagonal for nearly collinear neighbouring plays, raised up to $10^{-6}$ for identical ones), and
+    `scipy.optimize.nnls` runs on $\|Rx - R^{-\top}A^\top b\|$, which differs from $\|Ax - b\|^2$ by a
+    constant. The products use `einsum` (no multithreaded BLAS: on a loaded machine its spinning threads made a
+    32000 × 66 QR take seconds)."""
+    norms = np.sqrt(np.einsum("ij,ij->j", a, a))
+    norms = np.where(norms > 0, norms, 1.0)
+    an = a / norms
+    gram = np.einsum("ij,ik->jk", an, an)
+    for ridge in (1e-12, 1e-10, 1e-8, 1e-6):  # identical columns (plays between the levels of held steps)
+        try:
+            r = np.linalg.cholesky(gram + ridge * np.eye(a.shape[1])).T
+            break
+        except np.linalg.LinAlgError:
+            continue
+    else:
+        raise np.linalg.LinAlgError("the design's Gram matrix is not positive definite even with a 1e-6 ridge")
+    rhs = scipy.linalg.solve_triangular(r, np.einsum("ij,i->j", an, b), trans="T")
+    coef, _ = scipy.optimize.nnls(r, rhs, maxiter=50 * a.shape[1])
+    return coef / norms
+
+
+def _design(records, thresholds, max_rows: int | None = None):
+    """Rows [v, P_r1[v], ..., P_rn[v]] of every record (demagnetised start), and the outputs: every sample, or the
+    `row_subset` of at most `max_rows` (the plays run over each whole record)."""
     play = PlayOperator(jnp.asarray(thresholds))
-    blocks = [np.column_stack([v, np.asarray(play(jnp.asarray(v)))]) for v, _ in records]
-    return np.concatenate(blocks), np.concatenate([y for _, y in records])
+    keep = row_subset([v.size for v, _ in records], max_rows)
+    blocks = [np.column_stack([v[k], np.asarray(play(jnp.asarray(v)))[k]]) for (v, _), k in zip(records, keep)]
+    return np.concatenate(blocks), np.concatenate([y[k] for (_, y), k in zip(records, keep)])
 
 
 def pi_weights_least_squares(
@@ -49,6 +105,7 @@ def pi_weights_least_squares(
     outputs: ArrayLike | Sequence[ArrayLike],
     thresholds: ArrayLike,
     nonnegative: bool = True,
+    max_rows: int | None = None,
 ) -> PrandtlIshlinskii:
     r"""Linear least squares for the weights of a Prandtl–Ishlinskii operator with given thresholds.
 
@@ -60,14 +117,18 @@ def pi_weights_least_squares(
     - `signals`, `outputs`: one 1-D input/output pair, or sequences of them (records of any lengths).
     - `thresholds`: the thresholds $r_i$, ascending.
     - `nonnegative`: solve with `scipy.optimize.nnls` (default) or plain least squares.
+    - `max_rows`: solve on at most this many samples, a fixed random subset of every record's (the plays still run
+      over whole records); `None` (default): every sample.
 
     **Returns:** the fitted `PrandtlIshlinskii` (exact, `smoothing = 0`).
     """
     records = _as_records(signals, outputs)
     thresholds = np.asarray(thresholds, dtype=float)
-    a, b = _design(records, thresholds)
+    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
+        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
+    a, b = _design(records, thresholds, max_rows)
     if nonnegative:
-        coef, _ = scipy.optimize.nnls(a, b)
+        coef = nnls_gram(a, b)
     else:
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
     return PrandtlIshlinskii(jnp.asarray(coef[1:]), jnp.asarray(thresholds), w0=float(coef[0]))
@@ -90,6 +151,7 @@ def pi_cold_start(
     n: int,
     grid_size: int | None = None,
     min_weight_fraction: float = 1e-3,
+    max_rows: int | None = MAX_ROWS,
 ) -> PrandtlIshlinskii:
     r"""Initial Prandtl–Ishlinskii operator with `n` plays from input/output data, needing no prior guess.
 
@@ -109,11 +171,16 @@ def pi_cold_start(
     - `n`: the number of plays.
     - `grid_size`: size of the dense grid (default `8 * n`).
     - `min_weight_fraction`: dense weights below this fraction of the largest are treated as zero.
+    - `max_rows`: both least squares use at most this many samples (default 200000), a fixed random subset of
+      every record's when the records are longer (the plays still run over whole records): a 1e6-sample record
+      starts in a fraction of the time and memory; `None`: every sample.
 
     **Returns:** a `PrandtlIshlinskii` with `n` strictly ascending positive thresholds.
     """
     if not isinstance(n, int) or n < 1:
         raise PiezojaxValueError(f"`n` must be a positive integer, got {n!r}")
+    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
+        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
     records = _as_records(signals, outputs)
     vmax = max(np.max(np.abs(v)) for v, _ in records)
     if not vmax > 0:
@@ -122,8 +189,9 @@ def pi_cold_start(
     if grid_size < n:
         raise PiezojaxValueError(f"`grid_size` must be at least `n` = {n}, got {grid_size}")
     grid = vmax * np.arange(1, grid_size + 1) / (grid_size + 1)
-    a, b = _design(records, grid)
-    coef, _ = scipy.optimize.nnls(a, b)
+    a, b = _design(records, grid, max_rows)
+    coef = nnls_gram(a, b)
+    del a
     dense = coef[1:]
 
     clusters = contiguous_runs(dense > min_weight_fraction * max(dense.max(), np.finfo(float).tiny))
@@ -152,7 +220,7 @@ def pi_cold_start(
     thresholds = np.sort(np.asarray(thresholds))
     thresholds = np.maximum.accumulate(np.maximum(thresholds, 0.25 * spacing))
     thresholds = thresholds + 1e-9 * vmax * np.arange(n)  # strictly ascending
-    op = pi_weights_least_squares(signals, outputs, thresholds)
+    op = pi_weights_least_squares([v for v, _ in records], [y for _, y in records], thresholds, max_rows=max_rows)
     # Keep every weight strictly positive so a log/softplus reparametrisation can start from it.
     floor = 1e-3 * max(float(jnp.max(op.weights)), 1e-12)
     return PrandtlIshlinskii(jnp.maximum(op.weights, floor), op.thresholds, w0=jnp.maximum(op.w0, floor))
