@@ -538,10 +538,13 @@ class PrandtlIshlinskiiKind(BlockKind):
         return {"n_plays": o["plays"]}
 
     def reseed(self, o, block, max_input):
-        r"""Dead plays — weight below $10^{-4}$ of the largest, or threshold at or above the largest $|v|$ (the play
-        never moves) — moved one by one to the middle of the widest gap between the live thresholds on
-        $[0, \max|v|]$, at 1 % of the live plays' mean weight (small, so the re-seeded model starts where the fit
-        ended, and not zero, so the play's threshold has a gradient)."""
+        r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
+        leaves $[-(\max|v| - r), \max|v| - r]$), is below $10^{-3}$ of the operator's,
+        $|w_0|\max|v| + \sum_i w_i(\max|v| - r_i)^+$: a negligible weight, a threshold at or above $\max|v|$ (the
+        play never moves), or one just below it (a heavy play that moves by millivolts, measured on the independent
+        plant: a weight of 20 nm/V at 99.97 V of 100) — moved one by one to the middle of the widest gap between the
+        live thresholds on $[0, \max|v|]$, at 1 % of the live plays' mean weight (small, so the re-seeded model
+        starts where the fit ended, and not zero, so the play's threshold has a gradient)."""
         return _reseed_plays(block, max_input)
 
     def from_cold_start(self, o, block):
@@ -604,7 +607,9 @@ class PlayKind(BlockKind):
 
 def _reseed_plays(block, max_input: float):
     w, r = np.asarray(block.weights, float), np.asarray(block.thresholds, float)
-    dead = (w < 1e-4 * max(float(np.max(w, initial=0.0)), TINY)) | (r >= max_input)
+    reach = np.abs(w) * np.maximum(max_input - r, 0.0)
+    total = float(np.sum(reach)) + abs(float(block.w0)) * max_input
+    dead = reach < 1e-3 * max(total, TINY)
     if not dead.any() or dead.all() or not max_input > 0:
         return None
     live_r, live_w = r[~dead], w[~dead]

@@ -235,6 +235,9 @@ def test_dead_plays_are_moved_to_the_widest_gaps():
     np.testing.assert_allclose(new.weights, [1.0, 0.01, 0.01])
     assert float(new.w0) == 0.3
     assert _reseed_plays(pj.PrandtlIshlinskii(jnp.array([1.0, 0.5]), jnp.array([1.0, 2.0])), 10.0) is None
+    # a heavy play just below the largest voltage moves by millivolts: as dead as one above it
+    near = _reseed_plays(pj.PrandtlIshlinskii(jnp.array([1.0, 0.5, 2.0]), jnp.array([1.0, 2.0, 9.999])), 10.0)
+    np.testing.assert_allclose(near.thresholds, [1.0, 2.0, 6.0])
     cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n', "pi.toml")
     model = cfg._constrain(pj.Actuator(pi))
     ds = fitting.Dataset([fitting.Experiment.from_arrays(t=np.arange(5.0), v_in=[0.0, 10, -10, 5, 0],
