@@ -288,7 +288,7 @@ def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_
     row["held_out"] = {name: m["displacement"]["rmse"] / sigma for name, m in metrics.items()}
     row["held_out_worst"] = max(row["held_out"].values())
     if case == "pi":
-        samples = {Path(f).stem: signals(seconds)[Path(f).stem].size for f in train}
+        samples = {name: v.size for name, v in signals(seconds).items() if name.startswith("train")}
         row["recovery"] = recovery(result, truth, sse_truth, sigma, samples)
     return row
 

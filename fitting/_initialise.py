@@ -16,7 +16,7 @@ import scipy.signal
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
-from piezojax._hysteresis.initialise import MAX_ROWS, contiguous_runs, nnls_gram, row_subset
+from piezojax._hysteresis.initialise import MAX_ROWS, check_max_rows, contiguous_runs, nnls_gram, row_subset
 
 # ----------------------------------------------------------------------------------------------------------------
 # linear building blocks (NumPy mirrors of the models' exact ZOH recursions)
@@ -393,8 +393,7 @@ def cold_start_actuator(
         raise PiezojaxValueError(f"`iterations` must be an integer >= 0, got {iterations!r}")
     if not (isinstance(grid_factor, int) and grid_factor >= 1):
         raise PiezojaxValueError(f"`grid_factor` must be an integer >= 1, got {grid_factor!r}")
-    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
-        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
+    check_max_rows(max_rows)
     recs = _records(dataset)
     vmax = max(float(np.max(np.abs(v))) for v, _, _ in recs)
     if not vmax > 0:

@@ -243,6 +243,14 @@ class StartData:
         """Per-record arrays (first axis: the record's samples) at `rows`, concatenated."""
         return np.concatenate([np.asarray(a)[k] for a, k in zip(per_record, self.rows())])
 
+    def sampled_inputs(self) -> np.ndarray:
+        """`inputs` at `rows`."""
+        return self.sampled([v for v, _, _ in self.records()])
+
+    def sampled_outputs(self) -> np.ndarray:
+        """`outputs` at `rows`."""
+        return self.sampled([y for _, y, _ in self.records()])
+
     def inputs(self) -> np.ndarray:
         """Every record's voltage, concatenated."""
         return np.concatenate([v for v, _, _ in self.records()])
@@ -578,7 +586,7 @@ class PlayKind(BlockKind):
         import scipy.optimize
 
         n, recs = o["plays"], data.records()
-        y = data.sampled([y for _, y, _ in recs])
+        y = data.sampled_outputs()
         sign = 1.0 if data.static_gain() >= 0 else -1.0
         best = None
         for c in np.geomspace(0.02, 0.9, 10):
@@ -668,7 +676,7 @@ class BoucWenKind(BlockKind):
         bb, rr = (x.ravel() for x in np.meshgrid(betas, ratios))
         zs = [np.asarray(_bouc_wen_grid(jnp.asarray(bb), jnp.asarray(bb * rr), jnp.asarray(v)))[:, k]
               for (v, _, _), k in zip(recs, data.rows())]
-        v_all, y_all = data.sampled([v for v, _, _ in recs]), data.sampled([y for _, y, _ in recs])
+        v_all, y_all = data.sampled_inputs(), data.sampled_outputs()
         best, best_err = None, np.inf
         for i in range(bb.size):
             z = np.concatenate([zz[i] for zz in zs])
@@ -735,7 +743,7 @@ class MaxwellSlipKind(BlockKind):
         r = 1.2 * data.max_input() * np.arange(1, n + 1) / n
         play = pj.PlayOperator(jnp.asarray(r))
         a = data.sampled([v[:, None] - np.asarray(play(jnp.asarray(v))) for v, _, _ in recs])
-        y = data.sampled([y for _, y, _ in recs])
+        y = data.sampled_outputs()
         sign = 1.0 if data.static_gain() >= 0 else -1.0
         k, _ = scipy.optimize.nnls(a, sign * y)
         k = np.maximum(k, 1e-3 * max(float(k.max()), TINY))

@@ -42,6 +42,12 @@ def _as_records(signals, outputs) -> list[tuple[np.ndarray, np.ndarray]]:
 MAX_ROWS = 200_000
 
 
+def check_max_rows(max_rows) -> None:
+    """Raise unless `max_rows` (the row budget of a start's least squares) is a positive integer or `None`."""
+    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
+        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
+
+
 def row_subset(sizes: Sequence[int], max_rows: int | None, seed: int = 0) -> list:
     """Rows of a least squares over records of the given `sizes` to keep within `max_rows` in all: every row
     (`slice(None)` per record) when they fit, else the same fraction of each record's rows, drawn at random (a
@@ -122,10 +128,12 @@ def pi_weights_least_squares(
 
     **Returns:** the fitted `PrandtlIshlinskii` (exact, `smoothing = 0`).
     """
-    records = _as_records(signals, outputs)
-    thresholds = np.asarray(thresholds, dtype=float)
-    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
-        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
+    check_max_rows(max_rows)
+    return _weights(_as_records(signals, outputs), np.asarray(thresholds, dtype=float), nonnegative, max_rows)
+
+
+def _weights(records, thresholds: np.ndarray, nonnegative: bool, max_rows: int | None) -> PrandtlIshlinskii:
+    """`pi_weights_least_squares` on checked records."""
     a, b = _design(records, thresholds, max_rows)
     if nonnegative:
         coef = nnls_gram(a, b)
@@ -179,8 +187,7 @@ def pi_cold_start(
     """
     if not isinstance(n, int) or n < 1:
         raise PiezojaxValueError(f"`n` must be a positive integer, got {n!r}")
-    if max_rows is not None and not (isinstance(max_rows, int) and max_rows >= 1):
-        raise PiezojaxValueError(f"`max_rows` must be a positive integer or None, got {max_rows!r}")
+    check_max_rows(max_rows)
     records = _as_records(signals, outputs)
     vmax = max(np.max(np.abs(v)) for v, _ in records)
     if not vmax > 0:
@@ -220,7 +227,7 @@ def pi_cold_start(
     thresholds = np.sort(np.asarray(thresholds))
     thresholds = np.maximum.accumulate(np.maximum(thresholds, 0.25 * spacing))
     thresholds = thresholds + 1e-9 * vmax * np.arange(n)  # strictly ascending
-    op = pi_weights_least_squares([v for v, _ in records], [y for _, y in records], thresholds, max_rows=max_rows)
+    op = _weights(records, thresholds, True, max_rows)
     # Keep every weight strictly positive so a log/softplus reparametrisation can start from it.
     floor = 1e-3 * max(float(jnp.max(op.weights)), 1e-12)
     return PrandtlIshlinskii(jnp.maximum(op.weights, floor), op.thresholds, w0=jnp.maximum(op.w0, floor))
