@@ -185,15 +185,17 @@ def figures(held, staged: dict, joint: dict, folder: Path) -> None:
 
 def joint_start(staged_observer):
     """The staged observer with the fitted blocks reparametrised for the joint fit (thresholds ordered and positive,
-    creep time constants positive)."""
+    creep stiffnesses and time constants positive)."""
     import piezojax as pj
 
-    m = pj.constrain(staged_observer, lambda o: o.hysteresis.op.thresholds, pj.OrderedPositive)
+    m = pj.constrain(staged_observer, lambda o: o.hysteresis.hysteresis.thresholds, pj.OrderedPositive)
     m = pj.constrain(m, lambda o: o.filter_cutoff, pj.Positive)
-    return pj.constrain(m, lambda o: o.creep.times, pj.Positive)
+    m = pj.constrain(m, lambda o: o.creep.stiffnesses, pj.Positive)
+    return pj.constrain(m, lambda o: o.creep.time_constants, pj.Positive)
 
 
-JOINT_FREE = ["hysteresis.op.weights", "hysteresis.op.thresholds", "hysteresis.op.w0", "creep.gains", "creep.times",
+JOINT_FREE = ["hysteresis.hysteresis.weights", "hysteresis.hysteresis.thresholds", "hysteresis.hysteresis.w0",
+              "creep.stiffnesses", "creep.time_constants",
               "force_sensitivity", "displacement_coefficient", "stiffness", "bias_current", "filter_cutoff"]
 STAGED_CUTOFF = 20.0  # Hz: the hand-chosen cutoff of the Butterworth on F_est/k_Z (the paper gives none)
 

@@ -16,6 +16,7 @@ import scipy.signal
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
+from piezojax._creep.lags import lag_columns
 from piezojax._hysteresis.initialise import MAX_ROWS, check_max_rows, contiguous_runs, nnls_gram, row_subset
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -33,16 +34,6 @@ def _play_columns(v: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
     if thresholds.size == 0:
         return np.zeros((v.size, 0))
     return np.asarray(_play(jnp.asarray(thresholds), jnp.asarray(v)), dtype=float)
-
-
-def _lag_columns(v: np.ndarray, dt: float, taus: np.ndarray) -> np.ndarray:
-    r"""`(N, m)` unit-gain Kelvin–Voigt lags of `KelvinVoigtCreep` (ZOH, from rest):
-    $x_{k+1} = a x_k + (1 - a) v_k$, $y_k = x_k$, $a = e^{-dt/\tau}$."""
-    cols = []
-    for tau in taus:
-        a = np.exp(-dt / tau)
-        cols.append(scipy.signal.lfilter([0.0, -np.expm1(-dt / tau)], [1.0, -a], v))
-    return np.column_stack(cols) if cols else np.zeros((v.size, 0))
 
 
 def _filter_pairs(x: np.ndarray, dt: float, omega: np.ndarray, zeta: np.ndarray) -> np.ndarray:
@@ -260,7 +251,7 @@ def _design(v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray) 
     out[:, 0] = v
     for j in range(0, n, 16):
         out[:, 1 + j : 1 + min(n, j + 16)] = _play_columns(v, thresholds[j : j + 16])
-    out[:, 1 + n :] = _lag_columns(v, dt, taus)
+    out[:, 1 + n :] = lag_columns(v, dt, taus)
     return out
 
 
@@ -509,7 +500,7 @@ def _drive(design: np.ndarray, dt: float, taus: np.ndarray, w: np.ndarray, c: np
     h = design[:, : 1 + n_plays] @ w
     if not series:
         return h + design[:, 1 + n_plays :] @ c
-    return h + _lag_columns(h, dt, taus) @ c
+    return h + lag_columns(h, dt, taus) @ c
 
 
 def _series_gains(compact_raw, recs, rows, y_all, taus, omega, zeta, w, c, n_plays, sweeps: int = 4):
@@ -525,7 +516,7 @@ def _series_gains(compact_raw, recs, rows, y_all, taus, omega, zeta, w, c, n_pla
     g = float(np.dot(v_all, h_all) / max(np.dot(v_all, v_all), np.finfo(float).tiny))
     c = np.maximum(c / g, 0.0) if g > 0 else np.full(taus.size, 0.05)
     # the lags of each design column do not change between sweeps
-    lags = [[_lag_columns(h[:, i], dt, taus) for i in range(h.shape[1])] for h, (_, _, dt) in zip(hyst, recs)]
+    lags = [[lag_columns(h[:, i], dt, taus) for i in range(h.shape[1])] for h, (_, _, dt) in zip(hyst, recs)]
     for _ in range(sweeps):
         cols = [h + np.stack([lag @ c for lag in lag_h], axis=1) for h, lag_h in zip(hyst, lags)]
         w_new = _nnls_offset(_through(cols, recs, omega, zeta, rows), y_all)
@@ -533,7 +524,7 @@ def _series_gains(compact_raw, recs, rows, y_all, taus, omega, zeta, w, c, n_pla
             break
         w = w_new
         hs = [h @ w for h in hyst]
-        cols = [np.column_stack([hh, _lag_columns(hh, dt, taus)]) for hh, (_, _, dt) in zip(hs, recs)]
+        cols = [np.column_stack([hh, lag_columns(hh, dt, taus)]) for hh, (_, _, dt) in zip(hs, recs)]
         coef = _nnls_offset(_through(cols, recs, omega, zeta, rows), y_all)
         if not coef[0] > 0:
             break

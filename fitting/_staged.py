@@ -5,19 +5,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
-import scipy.signal
 
 import piezojax as pj
-from piezojax._benches.ivan import LagCreep, ScaledOperator
 from piezojax._checks import PiezojaxValueError
+from piezojax._creep.lags import lag_columns
 
 from ._data import Experiment
-
-
-def _lags(u: np.ndarray, dt: float, taus: np.ndarray) -> np.ndarray:
-    """Columns: first-order lags $1/(1 + \\tau_i s)$ of the held input `u`, from rest (as `LagCreep`)."""
-    a = np.exp(-dt / np.asarray(taus))
-    return np.column_stack([scipy.signal.lfilter([1 - ai], [1, -ai], u) for ai in a])
 
 
 @eqx.filter_jit
@@ -50,7 +43,8 @@ def staged_ivan2009(
        used, fitted to the compensated charge $Q$ (eq. 4 with $F = 0$) in volts of $C_P$ — here by
        `pj.pi_cold_start` (dense-grid non-negative least squares, then `n_plays` clustered thresholds);
     2. $\mathcal{F}_C$: the creep from a long voltage step (the paper fits a 4th-order ARMAX model; here
-       `creep_lags` first-order lags $\sum_i g_i/(1 + \tau_i s)$ by nonlinear least squares on $Q - \mathcal{F}_H$).
+       `creep_lags` first-order lags $\sum_i g_i/(1 + \tau_i s)$, $g_i > 0$, by nonlinear least squares on
+       $Q - \mathcal{F}_H$ in $\log g_i, \log\tau_i$).
 
     Steps 1 and 2 alternate `rounds` times (the triangles' creep part is removed with the current creep estimate).
 
@@ -60,7 +54,8 @@ def staged_ivan2009(
       (its own hysteresis/creep are ignored).
     - `triangles`, `creep_step`: experiments with `v_in` and `v_out`, recorded with the sensor retracted.
 
-    **Returns:** the observer with `hysteresis = ScaledOperator(C_P, PI)` and `creep = LagCreep(C_P g, τ)`.
+    **Returns:** the observer with `hysteresis = pj.ScaledHysteresis(PI, C_P)` and
+    `creep = pj.KelvinVoigtCreep(1 / (C_P g), τ, k0=None)` (the lags of held drive samples).
 
     Not differentiable (NNLS and scipy least squares): it is a reference procedure, not a model.
     """
@@ -84,16 +79,16 @@ def staged_ivan2009(
     taus = np.geomspace(duration / 40, duration / 4, creep_lags)
     pi = None
     for _ in range(rounds):
-        pi = pj.pi_cold_start(v_tri, q_tri - _lags(v_tri, dt_tri, taus) @ gains, n_plays)
+        pi = pj.pi_cold_start(v_tri, q_tri - lag_columns(v_tri, dt_tri, taus) @ gains, n_plays)
         rest = q_step - np.asarray(_apply(pi, jnp.asarray(v_step)))
 
         def residual(p):
-            return _lags(v_step, dt_step, np.exp(p[creep_lags:])) @ p[:creep_lags] - rest
+            return lag_columns(v_step, dt_step, np.exp(p[creep_lags:])) @ np.exp(p[:creep_lags]) - rest
 
-        sol = scipy.optimize.least_squares(residual, np.concatenate([gains, np.log(taus)]))
-        gains, taus = sol.x[:creep_lags], np.exp(sol.x[creep_lags:])
+        sol = scipy.optimize.least_squares(residual, np.log(np.concatenate([gains, taus])))
+        gains, taus = np.exp(sol.x[:creep_lags]), np.exp(sol.x[creep_lags:])
     dtype = jnp.asarray(observer.capacitance_p).dtype
     pi = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, pi)
-    hysteresis = ScaledOperator(jnp.asarray(cp, dtype), pi)
-    creep = LagCreep(jnp.asarray(cp * gains, dtype), jnp.asarray(taus, dtype))
+    hysteresis = pj.ScaledHysteresis(pi, jnp.asarray(cp, dtype))
+    creep = pj.KelvinVoigtCreep(jnp.asarray(1 / (cp * gains), dtype), jnp.asarray(taus, dtype), k0=None)
     return eqx.tree_at(lambda o: (o.hysteresis, o.creep), observer, (hysteresis, creep), is_leaf=lambda x: x is None)

@@ -41,7 +41,11 @@ from ._hysteresis.play import (
 )
 from ._hysteresis.polynomial import OutputPolynomial as OutputPolynomial
 from ._hysteresis.prandtl_ishlinskii import PrandtlIshlinskii as PrandtlIshlinskii
-from ._hysteresis.preisach import Preisach as Preisach
+from ._hysteresis.preisach import (
+    GaussianPreisach as GaussianPreisach,
+    Preisach as Preisach,
+)
+from ._hysteresis.scaled import ScaledHysteresis as ScaledHysteresis
 from ._linear.base import AbstractLinearSystem as AbstractLinearSystem
 from ._linear.butterworth import butterworth as butterworth
 from ._linear.discretise import (

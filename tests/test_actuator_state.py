@@ -188,6 +188,33 @@ def test_output_polynomial_and_smoothing_continuation():
         pj.OutputPolynomial(dynamics(), [0.1])
 
 
+def test_scaled_hysteresis_is_the_operator_times_its_gain():
+    inner = pj.PrandtlIshlinskii(W, R, w0=W0)
+    op = pj.ScaledHysteresis(inner, 2.5e-9)
+    v = jnp.asarray(V)
+    ref = pi_numpy(V)[0]
+    np.testing.assert_allclose(op(v), 2.5e-9 * ref, rtol=1e-12, atol=1e-22)
+    # the state is the inner operator's: a record split in two continues where it stopped
+    state, first = op.scan(v[:50])
+    np.testing.assert_allclose(jnp.concatenate([first, op.scan(v[50:], state)[1]]), op(v), rtol=1e-12, atol=1e-22)
+    assert float(fitting.set_smoothing(pj.ScaledHysteresis(inner, 1.0), 0.2).hysteresis.smoothing) == 0.2
+    # derivatives through the inner operator's own (hand-derived) path equal finite differences of the thresholds
+    jac = jax.jit(jax.jacfwd(lambda m: m(v)))(op)
+    np.testing.assert_allclose(jac.gain, ref, rtol=1e-12)
+    h = 1e-6
+    for i in range(len(R)):
+        bump = lambda d: np.asarray(eqx.tree_at(lambda m: m.hysteresis.thresholds, op,  # noqa: E731
+                                                op.hysteresis.thresholds.at[i].add(d))(v))
+        np.testing.assert_allclose(jac.hysteresis.thresholds[:, i], (bump(h) - bump(-h)) / (2 * h),
+                                   rtol=1e-5, atol=1e-14)
+    batched = jax.vmap(lambda g: pj.ScaledHysteresis(inner, g)(v))(jnp.array([1.0, -2.0]))
+    np.testing.assert_allclose(batched[1], -2.0 * batched[0], rtol=1e-12)
+    with pytest.raises(pj.PiezojaxValueError, match="gain"):
+        pj.ScaledHysteresis(inner, float("nan"))
+    with pytest.raises(pj.PiezojaxValueError, match="hysteresis"):
+        pj.ScaledHysteresis(dynamics(), 1.0)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [

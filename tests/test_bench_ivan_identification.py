@@ -9,7 +9,6 @@ import scipy.optimize
 import scipy.signal
 
 import piezojax as pj
-from piezojax._benches.ivan import GaussianPreisach, LagCreep, ScaledOperator
 
 DT = 1e-3
 N_RECORD = 200_500  # every bench record has this length: one compilation per bench (200 s creep step + ramp)
@@ -28,7 +27,7 @@ def test_gaussian_preisach_equals_relay_grid(rng, ns):
     # The same density as relays at the same r nodes and a uniform grid of centres s: the erf form is the exact
     # s-integral, so the relay grid converges to it at first order in the s spacing (one relay cell per node is
     # off at most, error <= ds * sum(w) / 2).
-    g = GaussianPreisach(0.003, 20.0, 15.0, w0=0.0, r_max=30.0, n=12)
+    g = pj.GaussianPreisach(0.003, 20.0, 15.0, w0=0.0, r_max=30.0, n=12)
     v = _random_path(rng)
     y = np.asarray(g(v))
     r, w = np.asarray(g.thresholds), np.asarray(g.weights)
@@ -50,7 +49,7 @@ def test_gaussian_preisach_equals_relay_grid(rng, ns):
 
 def test_gaussian_preisach_pi_limit_and_gradients():
     # sigma_s -> infinity: phi(p) = p, a Prandtl-Ishlinskii operator with the same weights and thresholds.
-    g = GaussianPreisach(0.01, 30.0, 1e7, w0=0.8, r_max=40.0, n=16)
+    g = pj.GaussianPreisach(0.01, 30.0, 1e7, w0=0.8, r_max=40.0, n=16)
     v = jnp.asarray(25 * np.sin(np.linspace(0, 9, 400)) * np.linspace(0.3, 1, 400))
     pi = pj.PrandtlIshlinskii(g.weights, g.thresholds, w0=0.8)
     np.testing.assert_allclose(np.asarray(g(v)), np.asarray(pi(v)), rtol=0, atol=1e-9)
@@ -59,7 +58,7 @@ def test_gaussian_preisach_pi_limit_and_gradients():
 
     @jax.jit
     def out(p):
-        return jnp.sum(GaussianPreisach(p[0], p[1], p[2], w0=p[3], r_max=40.0, n=16)(v) ** 2)
+        return jnp.sum(pj.GaussianPreisach(p[0], p[1], p[2], w0=p[3], r_max=40.0, n=16)(v) ** 2)
 
     p = jnp.asarray([0.01, 30.0, 20.0, 0.8])
     grad, jac = jax.grad(out)(p), jax.jacfwd(out)(p)
@@ -67,6 +66,16 @@ def test_gaussian_preisach_pi_limit_and_gradients():
     fd = [(out(p.at[i].add(h[i])) - out(p.at[i].add(-h[i]))) / (2 * h[i]) for i in range(4)]
     np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(jac), fd, rtol=1e-6)
+    # smoothing is an array leaf like every operator's: a traced value picks the exact or smooth loop by lax.cond
+    smooth = pj.GaussianPreisach(0.01, 30.0, 20.0, w0=0.8, r_max=40.0, n=16, smoothing=0.05)
+    exact = pj.GaussianPreisach(0.01, 30.0, 20.0, w0=0.8, r_max=40.0, n=16)(v)
+    run = jax.jit(lambda op: op(v))
+    np.testing.assert_allclose(run(smooth), smooth(v), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(run(eqx.tree_at(lambda o: o.smoothing, smooth, jnp.asarray(0.0))), exact,
+                               rtol=1e-12, atol=1e-12)
+    assert 1e-4 < float(jnp.max(jnp.abs(smooth(v) - exact))) < 0.1 * float(jnp.ptp(exact))
+    with pytest.raises(pj.PiezojaxValueError, match="smoothing"):
+        pj.GaussianPreisach(0.01, 30.0, 20.0, smoothing=-1.0)
 
 
 def test_gaussian_preisach_wiping_out_and_congruent_minor_loops():
@@ -102,7 +111,7 @@ def test_ivan_default_hysteresis_loop_and_quadrature():
     assert abs(np.max(d - u) / span - 0.08) < 1e-3  # 8 % loop width
     assert abs(y[-1] - y[0]) < 1e-12  # the cycle closes
     # The midpoint rule in r (h = 1 V) against h = 1/8 V on the contact drive: quadrature error << loop width.
-    fine = GaussianPreisach(0.0161, 100.0, 100.0, w0=0.84, r_max=100.0, n=800)
+    fine = pj.GaussianPreisach(0.0161, 100.0, 100.0, w0=0.84, r_max=100.0, n=800)
     v = pj.periodic_steps((-10.0, -20.0), period=4.0, cycles=1)
     err = np.max(np.abs(np.asarray(bench.hysteresis(v)) - np.asarray(fine(v))))
     assert err < 1e-2, err  # V, against a 1.6 V loop width (measured 8.0e-3 V)
@@ -124,8 +133,9 @@ def _pad(v):
 
 
 def _lags(u, taus):
+    # unit lags of the held drive samples (ZOH), from rest: x[k+1] = a x[k] + (1 - a) u[k], y[k] = x[k]
     a = np.exp(-DT / np.asarray(taus))
-    return np.column_stack([scipy.signal.lfilter([1 - ai], [1, -ai], u) for ai in a])
+    return np.column_stack([scipy.signal.lfilter([0, 1 - ai], [1, -ai], u) for ai in a])
 
 
 @eqx.filter_jit
@@ -172,11 +182,11 @@ def identify_and_run(bench):
     for _ in range(2):  # hysteresis on the triangles less their creep, then creep on the step less its hysteresis
         pi = pj.pi_cold_start(v_tri, q_tri - _lags(v_tri, taus) @ gains, 15)
         rest = q_step - np.asarray(_apply(pi, jnp.asarray(v_step)))
-        fit = scipy.optimize.least_squares(lambda p: _lags(v_step, np.exp(p[2:])) @ p[:2] - rest,
-                                           np.concatenate([gains, np.log(taus)]))
-        gains, taus = fit.x[:2], np.exp(fit.x[2:])
-    hysteresis = ScaledOperator(jnp.asarray(cp), pi)
-    creep = LagCreep(jnp.asarray(cp * gains), jnp.asarray(taus))
+        fit = scipy.optimize.least_squares(lambda p: _lags(v_step, np.exp(p[2:])) @ np.exp(p[:2]) - rest,
+                                           np.log(np.concatenate([gains, taus])))
+        gains, taus = np.exp(fit.x[:2]), np.exp(fit.x[2:])
+    hysteresis = pj.ScaledHysteresis(pi, jnp.asarray(cp))
+    creep = pj.KelvinVoigtCreep(jnp.asarray(1 / (cp * gains)), jnp.asarray(taus), k0=None)
 
     v = pj.periodic_steps((-10.0, -20.0), period=4.0, cycles=3)
     n = len(v)

@@ -281,7 +281,7 @@ def test_kv_jacfwd_matches_fd(rng):
 def test_lag_scan_hand_derivatives_equal_autodiff(rng):
     # the hand-derived JVP (sensitivities in one scan) against autodiff through the plain recurrence: parameter and
     # input directions, forward (jacfwd) and reverse (grad) mode, and second order
-    from piezojax._creep.kelvin_voigt import lag_scan
+    from piezojax._creep.lags import lag_scan
 
     def plain(a, b0, b1, c, u, u_next):
         def step(x, uu):
@@ -384,3 +384,51 @@ def test_linear_creep_jacfwd_and_bad_input(rng):
         pj.LinearCreep([1.0, 2.0])
     with pytest.raises(ValueError, match="poles"):
         pj.LinearCreep(pj.StableTransferFunction(poles=[0.1]))
+
+
+def _lag_reference(u, dt, tau, hold):
+    # continuous-time lag integrated by scipy (not piezojax): the input between samples as each hold defines it
+    n = len(u)
+    t = np.arange(n) * dt
+
+    def u_of(s):
+        if hold == "zoh":  # u[k] on [t_k, t_k+1)
+            return u[min(int(np.floor(s / dt + 1e-12)), n - 1)]
+        if hold == "interval":  # u[k] on (t_k-1, t_k]
+            return u[min(int(np.ceil(s / dt - 1e-12)), n - 1)]
+        k = min(int(np.floor(s / dt)), n - 2)  # foh: linear between samples
+        return u[k] + (u[k + 1] - u[k]) * (s / dt - k)
+
+    y, x = np.zeros(n), 0.0
+    if hold == "interval":  # the first sample is the mean over (t_-1, t_0]: from rest at t_-1
+        x = -np.expm1(-dt / tau) * u[0]
+    y[0] = x
+    for k in range(1, n):
+        sol = scipy.integrate.solve_ivp(lambda s, z: [(u_of(s) - z[0]) / tau], (t[k - 1], t[k]), [x],
+                                        rtol=1e-11, atol=1e-14, max_step=dt / 8)
+        x = sol.y[0, -1]
+        y[k] = x
+    return y
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh", "interval"])
+def test_lag_conventions_match_ode_and_numpy_columns(rng, hold):
+    # the one first-order lag: JAX (`lag_sum`) and NumPy (`lag_columns`) forms agree, and each hold is the exact
+    # solution of tau y' = u - y for its input between samples (integrated by scipy)
+    from piezojax._creep.lags import lag_columns, lag_sum
+
+    dt, taus, c = 1e-3, np.array([2e-3, 0.05]), np.array([0.7, -1.3])
+    u = rng.standard_normal(40)
+    got = np.asarray(lag_sum(jnp.asarray(c), jnp.asarray(taus), jnp.asarray(u), jnp.asarray(dt), hold))
+    cols = lag_columns(u, dt, taus, hold)
+    np.testing.assert_allclose(cols @ c, got, rtol=1e-12, atol=1e-13)
+    for j, tau in enumerate(taus):
+        np.testing.assert_allclose(cols[:, j], _lag_reference(u, dt, tau, hold), rtol=1e-7, atol=1e-9)
+    if hold != "interval":  # the creep blocks read their input with the same lags
+        np.testing.assert_allclose(pj.KelvinVoigtCreep(1 / c[:1], taus[:1], k0=None).simulate(u, dt, hold=hold),
+                                   cols[:, :1] @ c[:1], rtol=1e-12, atol=1e-13)
+    # "interval" is "zoh" one sample earlier
+    if hold == "interval":
+        np.testing.assert_allclose(cols[:-1], lag_columns(u, dt, taus, "zoh")[1:], rtol=1e-12, atol=1e-13)
+    with pytest.raises(pj.PiezojaxValueError, match="`hold` must be one of"):
+        lag_columns(u, dt, taus, "linear")

@@ -17,11 +17,11 @@ from experiments import fit_recovery as fr
 from fitting._initialise import (
     _arx_pairs,
     _filter_pairs,
-    _lag_columns,
     _spectral_pairs,
     cold_start_actuator,
     cold_start_free,
 )
+from piezojax._creep.lags import lag_columns
 from piezojax._hysteresis.initialise import nnls_gram, row_subset
 
 # ------------------------------------------------------------------------------------------------ building blocks
@@ -43,7 +43,7 @@ def test_nnls_matches_scipy(rng):
 def test_lag_and_dynamics_columns_match_library(rng):
     dt = 2.5e-4
     v = np.cumsum(rng.standard_normal(600))
-    lags = _lag_columns(v, dt, np.asarray([0.01]))
+    lags = lag_columns(v, dt, np.asarray([0.01]))
     for j, tau in enumerate([0.01]):
         ref = pj.KelvinVoigtCreep([1.0], [tau], k0=None).simulate(v, dt)
         np.testing.assert_allclose(lags[:, j], np.asarray(ref), rtol=1e-10, atol=1e-12 * np.abs(ref).max())

@@ -7,6 +7,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from .._circuits.base import interval_current
+from .._creep.lags import lag_sum
 from .._linear.base import AbstractLinearSystem
 from .._linear.transfer_function import TransferFunction
 from .._observers.dynamic_impedance import DynamicImpedanceObserver
@@ -128,8 +129,7 @@ class BafumbaBench(eqx.Module):
 
     def creep_charge(self, v: Array, dt: Array) -> Array:
         u = v * (1 + jnp.abs(v) / self.creep_field)
-        lags = jax.vmap(lambda tau: lag(u, dt, tau))(self.creep_times)
-        return self.creep_charges @ lags
+        return lag_sum(self.creep_charges, self.creep_times, u, dt, "interval")
 
     def record(self, v_command: ArrayLike, key: PRNGKeyArray) -> Record:
         """Simulate one record for the commanded voltage samples `v_command` [V] (from rest), seeded by `key`.

@@ -5,7 +5,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
-from .._circuits.base import apply_operator
 from .._circuits.smart_stack import SmartStackCircuit
 from .._hysteresis.bouc_wen import BoucWen
 from .._observers.sensor_layer import SensorLayerObserver
@@ -97,7 +96,7 @@ class ChenBench(eqx.Module):
         v = bench_signal(v_a, "v_a", dtype)
         dt = jnp.asarray(1.0 / self.sample_rate, dtype)
         t = jnp.arange(v.shape[0], dtype=dtype) * dt
-        x_a = self.stroke * apply_operator(self.hysteresis, v)
+        x_a = self.stroke * self.hysteresis(v)
         force = self.stack.sensor_force(x_a, dt)
         charge_signal = self.stack.d33 / self.stack.amplifier_capacitance * force
         v_s = charge_signal - lag(charge_signal, dt, self.amplifier_time_constant) + self.stack.crosstalk * v

@@ -7,6 +7,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import PiezojaxValueError, as_float_array, check_finite, check_signal
+from .._creep.lags import lag_sum
 
 
 class Record(eqx.Module):
@@ -61,14 +62,10 @@ def measure(x: Array, key: PRNGKeyArray, noise: float, bits: int, full_scale: fl
 
 
 def lag(u: Array, dt: Array, tau: ArrayLike) -> Array:
-    r"""First-order lag $1/(1 + \tau s)$ from rest, exact for a held input: $y_{k} = a y_{k-1} + (1 - a) u_k$."""
-    a = jnp.exp(-dt / jnp.asarray(tau, u.dtype))
-
-    def step(y, uk):
-        y = a * y + (1 - a) * uk
-        return y, y
-
-    return jax.lax.scan(step, jnp.zeros((), u.dtype), u)[1]
+    r"""A unit-gain first-order lag $1/(1 + \tau s)$ of the interval-mean samples `u`, from rest (the benches'
+    electronics): `lag_sum` with `hold="interval"`, $y_k = a y_{k-1} + (1 - a) u_k$, $a = e^{-dt/\tau}$."""
+    tau = jnp.reshape(jnp.asarray(tau, u.dtype), (1,))
+    return lag_sum(jnp.ones((1,), u.dtype), tau, u, dt, "interval")
 
 
 def step_command(levels: ArrayLike, hold: float, sample_rate: float, rest: float = 0.0) -> np.ndarray:

@@ -6,16 +6,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
-from .._checks import PiezojaxValueError, check_finite, check_positive
-from .._circuits.base import apply_operator, running_integral
+from .._circuits.base import running_integral
+from .._creep.kelvin_voigt import KelvinVoigtCreep
 from .._hysteresis.base import AbstractHysteresis
-from .._hysteresis.play import (
-    _AbstractStopCell,
-    param_dtype,
-    stop_update,
-)
+from .._hysteresis.preisach import GaussianPreisach
+from .._hysteresis.scaled import ScaledHysteresis
 from .._observers.current_integration import ForceDisplacementObserver
-from .common import Record, bench_param, bench_signal, lag, measure, replace_fields
+from .common import Record, bench_param, bench_signal, measure, replace_fields
 
 
 def periodic_steps(levels=(-10.0, -20.0), period: float = 4.0, slope: float = 100.0, cycles: int = 3,
@@ -39,145 +36,6 @@ def periodic_steps(levels=(-10.0, -20.0), period: float = 4.0, slope: float = 10
             down = np.clip(abs(level) - (t - period / 2) * slope, 0, abs(level))
             out.append(np.sign(level) * np.where(t < period / 2, up, down))
     return np.concatenate(out)
-
-
-class GaussianPreisach(_AbstractStopCell):
-    r"""A Preisach operator with a separable Gaussian density, computed exactly in $s$ through its play form.
-
-    With half-width $r = (\alpha - \beta)/2$ and centre $s = (\alpha + \beta)/2$, the relay of the demagnetised
-    Preisach operator is $R_{\alpha,\beta}[v] = \mathrm{sign}(P_r[v] - s)$, $P_r$ the play operator started at 0
-    (Mayergoyz; Krejčí). For a density $\mu(r, s)$ (per unit $r$ and $s$) that is even in $s$,
-
-    $$\int_0^\infty\!\!\int_{-\infty}^{\infty}\mu\,\mathrm{sign}(P_r[v] - s)\,ds\,dr
-      = 2\int_0^\infty\!\!\int_0^{P_r[v]}\mu(r, s)\,ds\,dr,$$
-
-    and for $\mu = c\,e^{-r^2/2\sigma_r^2}e^{-s^2/2\sigma_s^2}$ the inner integral is an error function of the
-    play output. With the midpoint rule on $n$ nodes $r_j = (j + \tfrac12)h$, $h = r_{\max}/n$:
-
-    $$y = w_0 v + \sum_j w_j\,\varphi(P_{r_j}[v]),\quad \varphi(p) = \int_0^p e^{-s^2/2\sigma_s^2}ds
-      = \sigma_s\sqrt{\pi/2}\,\mathrm{erf}\bigl(p/(\sqrt2\sigma_s)\bigr),\quad
-      w_j = 2c\,h\,e^{-r_j^2/2\sigma_r^2}.$$
-
-    A "generalised Prandtl–Ishlinskii" operator with odd, saturating shape $\varphi$ (the PI class has $\varphi(p) =
-    p$, reached as $\sigma_s \to \infty$): it is a Preisach operator (density on the lines $r = r_j$, Gaussian in
-    $s$), so it has return-point memory, wiping-out and congruent minor loops, which Bouc–Wen lacks. Plays with $r \geq
-    \max|v|$ never leave 0, so truncating the $r$ integral at $r_{\max}$ is exact for inputs within $\pm r_{\max}$;
-    the midpoint rule in $r$ is the only discretisation (for the `IvanBench` default, $h$ = 1 V, it is within
-    8e-3 V of $h$ = 1/8 V on the paper's contact drive, against a 1.6 V loop width). Exact plays by default;
-    `smoothing` $> 0$ uses the smooth rate-independent play of `play_step`. Works under `jit`, `vmap`, `jax.grad`
-    and `jax.jacfwd`.
-
-    **Arguments:**
-
-    - `density`: $c$ [1/V], the density at the origin (per V of $r$ and per V of $s$).
-    - `sigma_r`, `sigma_s` [V]: widths of the density in half-width and centre.
-    - `w0`: the reversible linear gain.
-    - `r_max` [V], `n`: quadrature range and number of nodes (static).
-    - `smoothing`: relative play smoothing $\geq 0$ (0 = exact); static (a Python float, no gradient).
-
-    **Returns:** called on a signal of shape `(time,)`, the output, shape `(time,)` (in the units of the input).
-
-    ```python
-    op = GaussianPreisach(0.005, 100.0, 100.0, w0=0.9)
-    y = op(-20.0 * jnp.abs(jnp.sin(jnp.linspace(0, 6, 3000))))
-    ```
-    """
-
-    w0: Array
-    weights: Array
-    thresholds: Array
-    sigma_s: Array
-    smoothing: float = eqx.field(static=True)
-    _block: int = eqx.field(static=True, default=1024)
-
-    def __init__(self, density: ArrayLike, sigma_r: ArrayLike, sigma_s: ArrayLike, *, w0: ArrayLike = 1.0,
-                 r_max: float = 100.0, n: int = 100, smoothing: float = 0.0):
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise PiezojaxValueError(f"`n` must be a positive int, got {n!r}")
-        if not (np.isfinite(r_max) and r_max > 0):
-            raise PiezojaxValueError(f"`r_max` must be finite and > 0, got {r_max!r}")
-        dtype = param_dtype(density, sigma_r, sigma_s, w0)
-        density, sigma_r = jnp.asarray(density, dtype), jnp.asarray(sigma_r, dtype)
-        for name, x in (("density", density), ("sigma_r", sigma_r), ("sigma_s", sigma_s), ("w0", w0)):
-            if jnp.ndim(x) != 0:
-                raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {jnp.shape(x)}")
-        density = check_positive(density, "density", allow_zero=True)
-        sigma_r = check_positive(sigma_r, "sigma_r")
-        h = float(r_max) / n
-        r = jnp.asarray((np.arange(n) + 0.5) * h, dtype)
-        self.thresholds = r
-        self.weights = 2 * density * h * jnp.exp(-0.5 * (r / sigma_r) ** 2)
-        self.sigma_s = jnp.asarray(sigma_s, dtype)
-        self.sigma_s = check_positive(self.sigma_s, "sigma_s", allow_zero=True)
-        self.w0 = check_finite(jnp.asarray(w0, dtype), "w0")
-        # Static: a bench's truth keeps one form, and a traced smoothing would compile both loops (`lax.cond`).
-        if not (isinstance(smoothing, (int, float, np.floating)) and np.isfinite(smoothing) and smoothing >= 0):
-            raise PiezojaxValueError(f"`smoothing` must be a finite Python float >= 0 (0 = exact), got {smoothing!r}")
-        self.smoothing = float(smoothing)
-
-    def check(self) -> "GaussianPreisach":
-        sig = check_positive(self.sigma_s, "sigma_s")
-        return eqx.tree_at(lambda o: (o.sigma_s, o.weights, o.thresholds), self,
-                           (sig, check_positive(self.weights, "weights", allow_zero=True),
-                            check_positive(self.thresholds, "thresholds", allow_zero=True)))
-
-    def _output(self, v: Array, z: Array) -> Array:
-        sig = self.sigma_s
-        c = jnp.sqrt(jnp.asarray(0.5, v.dtype))
-        phi = sig * jnp.sqrt(jnp.pi / 2).astype(v.dtype) * jax.lax.erf(c * (v[..., None] - z) / sig)
-        return self.w0 * v + phi @ self.weights
-
-    def _run(self, state, signal):
-        # The plays run in a tight loop over blocks of samples and the shape function is applied to each block at
-        # once: an erf per play per sample inside the loop is 2-3x slower (measured: 1e6 samples, 100 plays).
-        # Padding repeats the last sample, which moves no play, so the final state is unchanged.
-        t = signal.shape[0]
-        b = min(t, self._block)
-        pad = (-t) % b
-        blocks = jnp.concatenate([signal, jnp.broadcast_to(signal[-1], (pad,))]).reshape(-1, b)
-
-        def run(exact):
-            def inner(carry, v):
-                v_prev, z = carry
-                z = stop_update(z, v - v_prev, self.thresholds, self.smoothing, exact)
-                return (v, z), z
-
-            def outer(carry, vb):
-                carry, zb = jax.lax.scan(inner, carry, vb)
-                return carry, self._output(vb, zb)
-
-            return jax.lax.scan(outer, state, blocks)
-
-        final, y = run(self.smoothing == 0)
-        return final, y.reshape(-1)[:t]
-
-
-class LagCreep(eqx.Module):
-    r"""Creep as a sum of first-order lags, $\sum_i \frac{g_i}{1 + \tau_i s}$, exact for held samples, from rest.
-
-    Called as `creep(u, dt)`, like the creep blocks; used by the benches and as their true creep operator.
-    """
-
-    gains: Array
-    times: Array
-
-    def __call__(self, u: Array, dt: ArrayLike) -> Array:
-        u = jnp.asarray(u)
-        dt = jnp.asarray(dt, u.dtype)
-        return self.gains.astype(u.dtype) @ jax.vmap(lambda tau: lag(u, dt, tau))(self.times.astype(u.dtype))
-
-
-class ScaledOperator(eqx.Module):
-    """`gain * op(v)` for a signal-to-signal operator `op` (e.g. a hysteresis cell in volts turned into charge)."""
-
-    gain: Array
-    op: eqx.Module
-
-    def __call__(self, v: Array) -> Array:
-        # A hysteresis cell runs through its own `_run` (GaussianPreisach's blocked loop is 2-3x faster than a scan
-        # of `step`).
-        y = self.op(v) if isinstance(self.op, AbstractHysteresis) else apply_operator(self.op, v)
-        return self.gain.astype(v.dtype) * y
 
 
 class IvanBench(eqx.Module):
@@ -300,11 +158,12 @@ class IvanBench(eqx.Module):
             self.force_sensitivity, self.alpha, self.identified_stiffness(), capacitance_p=self.capacitance_p,
             hysteresis=hysteresis, creep=creep, filter_cutoff=filter_cutoff)
 
-    def true_charge_operators(self) -> tuple[ScaledOperator, LagCreep]:
+    def true_charge_operators(self) -> tuple[ScaledHysteresis, KelvinVoigtCreep]:
         """The bench's own charge operators `(hysteresis, creep)` in the observer's form: with them the observer's
-        model is exact (only noise, quantisation and bias drift remain)."""
-        return (ScaledOperator(self.capacitance_p, self.hysteresis),
-                LagCreep(self.capacitance_p * self.creep_fractions, self.creep_times))
+        model is exact (only noise, quantisation and bias drift remain). The creep is the Kelvin–Voigt chain without
+        instantaneous term, $1/k_i = C_P c_i$ (held drive samples, as the observer reads them)."""
+        return (ScaledHysteresis(self.hysteresis, self.capacitance_p),
+                KelvinVoigtCreep(1 / (self.capacitance_p * self.creep_fractions), self.creep_times, k0=None))
 
     def free_charge(self, v: Array, dt: Array) -> Array:
         """$Q_V$ [C]: hysteretic charge plus creep charge of the free actuator."""

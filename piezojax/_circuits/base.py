@@ -116,17 +116,3 @@ class AbstractCircuit(eqx.Module):
     def __call__(self, v_in: ArrayLike, dt: ArrayLike, *args, **kwargs) -> Array:
         """The recorded output voltage for the drive `v_in` sampled with step `dt`."""
 
-
-def apply_operator(op: eqx.Module, v: Array) -> Array:
-    """Apply a signal-to-signal block (e.g. a hysteresis cell) to an already validated 1-D signal `v`.
-
-    Hysteresis cells are scanned here with a closure over the module rather than through
-    `AbstractHysteresis.scan`, which passes the bound method `op.step` to `lax.scan`; with jax 0.10.2 and
-    equinox 0.13.8 that hashes the module and fails on its array fields.
-    """
-    from .._hysteresis.base import AbstractHysteresis
-
-    if isinstance(op, AbstractHysteresis):
-        op = cast_module(op, v.dtype).check()
-        return jax.lax.scan(lambda s, x: op.step(s, x), op.init(), v)[1]
-    return op(v)

@@ -6,7 +6,6 @@ from jaxtyping import Array, ArrayLike, Float
 from .._custom_types import Signal, SignalLike
 from .base import (
     AbstractCircuit,
-    apply_operator,
     check_positive_param,
     check_scalar_param,
     error_if_not_finite,
@@ -89,7 +88,7 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         return error_if_not_finite(m, ("bias_current",))
 
     def _voltage_charge(self, v_in: Array, dt: Array) -> Array:
-        q = self.capacitance_p * v_in if self.hysteresis is None else apply_operator(self.hysteresis, v_in)
+        q = self.capacitance_p * v_in if self.hysteresis is None else self.hysteresis(v_in)
         if self.creep is not None:
             q = q + self.creep(v_in, dt)
         return q

@@ -9,7 +9,6 @@ from .._custom_types import Signal, SignalLike
 from .._linear.transfer_function import TransferFunction
 from .base import (
     AbstractCircuit,
-    apply_operator,
     check_positive_param,
     check_scalar_param,
     error_if_not_finite,
@@ -128,5 +127,5 @@ class SmartStackCircuit(AbstractCircuit):
         if x is None:
             if m.actuator is None:
                 raise PiezojaxValueError("`x_a` is required when the circuit has no `actuator`")
-            x = apply_operator(m.actuator, s["v_a"])
+            x = m.actuator(s["v_a"])
         return m.d33 / m.amplifier_capacitance * m._force(x, dt) + m.crosstalk * s["v_a"]

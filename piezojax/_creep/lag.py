@@ -6,7 +6,8 @@ from jaxtyping import Array, ArrayLike
 
 from .._checks import check_positive, check_value
 from .base import AbstractCreep
-from .kelvin_voigt import KelvinVoigtCreep, paired_vectors
+from .kelvin_voigt import paired_vectors
+from .lags import lag_sum
 
 
 def _check_fractions(alpha: Array) -> Array:
@@ -27,7 +28,7 @@ class LagCreep(AbstractCreep):
     after the hysteresis, where a free static gain would duplicate the hysteresis weights. A real actuator answers a
     voltage step mostly at once and the rest over milliseconds to seconds; a plain first-order lag ($\sum\alpha = 1$)
     cannot follow the step and a steady loop's phase lag at once. It is a `KelvinVoigtCreep` with
-    $1/k_0 = 1 - \sum\alpha_i$ and $1/k_i = \alpha_i$, simulated exactly the same way.
+    $1/k_0 = 1 - \sum\alpha_i$ and $1/k_i = \alpha_i$, simulated by the same lags (`lags.lag_sum`).
 
     **Arguments:**
 
@@ -59,17 +60,9 @@ class LagCreep(AbstractCreep):
         r"""$1 - \sum_i \alpha_i$, the part of the response that follows the input at once."""
         return 1 - jnp.sum(self.fractions)
 
-    def _chain(self) -> KelvinVoigtCreep:
-        # the equivalent chain without its constructor's concrete checks (parameters may be traced)
-        kv = object.__new__(KelvinVoigtCreep)
-        object.__setattr__(kv, "stiffnesses", 1 / self.fractions)
-        object.__setattr__(kv, "time_constants", self.time_constants)
-        object.__setattr__(kv, "k0", None)
-        return kv
-
     def step_response(self, t: ArrayLike) -> Array:
         t = jnp.asarray(t)
-        return self.feedthrough() + self._chain().step_response(t)
+        return self.feedthrough() + jnp.sum(-jnp.expm1(-t[..., None] / self.time_constants) * self.fractions, axis=-1)
 
     def instantaneous_gain(self) -> Array:
         return self.feedthrough()
@@ -78,4 +71,4 @@ class LagCreep(AbstractCreep):
         return jnp.ones((), self.fractions.dtype)
 
     def _simulate(self, u: Array, dt: Array, hold: str) -> Array:
-        return self.feedthrough() * u + self._chain()._simulate(u, dt, hold)
+        return self.feedthrough() * u + lag_sum(self.fractions, self.time_constants, u, dt, hold)

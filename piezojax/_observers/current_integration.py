@@ -6,7 +6,6 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, check_value
 from .._circuits.base import (
-    apply_operator,
     check_positive_param,
     check_scalar_param,
     error_if_not_finite,
@@ -152,10 +151,10 @@ class ForceDisplacementObserver(AbstractObserver):
         if m.hysteresis is None:
             q_v = m.capacitance_p * v
         elif m.prehistory is None:
-            q_v = apply_operator(m.hysteresis, v)
+            q_v = m.hysteresis(v)
         else:  # the excursion 0 -> u_p -> 0 first; the integrator reads the change from its end
             path = jnp.stack([m.prehistory.astype(v.dtype), jnp.zeros((), v.dtype)])
-            h = apply_operator(m.hysteresis, jnp.concatenate([path, v]))
+            h = m.hysteresis(jnp.concatenate([path, v]))
             q_v = h[2:] - h[1]
         if m.creep is not None:
             q_v = q_v + m.creep(v, dt)

@@ -1,0 +1,143 @@
+r"""Benchmark: the Jacobian of paper 001's observer through each block's fast path, against generic scans.
+
+Run: `python -m experiments.bench_observer [--quick]`
+
+The observer is the main command's (`experiments.calibrate`): `pj.ForceDisplacementObserver` on the `pj.IvanBench`
+constants with the charge hysteresis $C_P\,\mathrm{PI}[V]$ (`pj.ScaledHysteresis` of a 15-play
+`pj.PrandtlIshlinskii`), a two-lag creep (`pj.KelvinVoigtCreep(k0=None)`) and the third-order Butterworth on the
+force term. Timed: the forward-mode Jacobian (`jax.jacfwd`) of the stacked force and displacement estimates with
+respect to the joint fit's 40 free parameters (15 weights, 15 thresholds, $w_0$, 2 creep stiffnesses and 2 time
+constants, β, α, $k_Z$, the bias current, the filter cutoff), on one record of the contact drive.
+
+- "blocks' own paths" — the library: the PI through its own loop and hand-derived sensitivities (`pi_scan`), the
+  creep through `lags.lag_sum` (sensitivities in one scan);
+- "generic scans" — the same observer with the same values, the hysteresis scanned through its cell's `step` and the
+  creep as a plain scan of the lag recurrence per time constant, both differentiated by autodiff (what circuits and
+  observers did before each block's path was used).
+
+The two Jacobians are checked to agree. Timings are the best of several repeats after a warm-up call that
+compiles; the ratio is generic / library (higher is better).
+"""
+
+import argparse
+import os
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import piezojax as pj
+
+
+class _StepScan(eqx.Module):
+    """A hysteresis cell run by a plain `lax.scan` of its `step` (autodiff through the scan body)."""
+
+    op: pj.AbstractHysteresis
+
+    def __call__(self, v):
+        op = self.op
+        return jax.lax.scan(lambda s, x: op.step(s, x), op.init(), v)[1]
+
+
+class _PlainLags(eqx.Module):
+    """$\\sum_i \\frac{1/k_i}{1 + \\tau_i s}$ (ZOH, from rest) by a plain scan per lag (autodiff through it)."""
+
+    stiffnesses: jax.Array
+    time_constants: jax.Array
+
+    def __call__(self, u, dt):
+        def one(tau):
+            a = jnp.exp(-dt / tau)
+
+            def step(x, uk):
+                return a * x + (1 - a) * uk, x
+
+            return jax.lax.scan(step, jnp.zeros((), u.dtype), u)[1]
+
+        return (1 / self.stiffnesses) @ jax.vmap(one)(self.time_constants)
+
+
+class _Scaled(eqx.Module):
+    """`gain * op(v)`."""
+
+    gain: jax.Array
+    op: eqx.Module
+
+    def __call__(self, v):
+        return self.gain * self.op(v)
+
+
+def _best(f, repeats):
+    f().block_until_ready()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f().block_until_ready()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a 4000-sample record and 2 repeats")
+    args = parser.parse_args(argv)
+    pj.enable_fast_cpu_scans()
+    jax.config.update("jax_enable_x64", True)
+
+    bench = pj.IvanBench()
+    v = pj.periodic_steps((-10.0, -20.0), period=4.0, cycles=1 if args.quick else 3)
+    rec = eqx.filter_jit(bench.record)(jnp.asarray(v), jax.random.key(0))
+    dt = 1.0 / bench.sample_rate
+    cp = bench.capacitance_p
+    pi = pj.PrandtlIshlinskii(jnp.full(15, 0.02), jnp.linspace(0.5, 18.0, 15), w0=0.9)
+    k, tau = 1 / (cp * jnp.array([0.02, 0.03])), jnp.array([10.0, 100.0])
+    library = bench.observer(pj.ScaledHysteresis(pi, cp), pj.KelvinVoigtCreep(k, tau, k0=None), filter_cutoff=20.0)
+    generic = bench.observer(_Scaled(cp, _StepScan(pi)), _PlainLags(k, tau), filter_cutoff=20.0)
+
+    def paths(o):  # the joint fit's free parameters
+        inner = o.hysteresis.hysteresis if isinstance(o.hysteresis, pj.ScaledHysteresis) else o.hysteresis.op.op
+        return (inner.weights, inner.thresholds, inner.w0, o.creep.stiffnesses, o.creep.time_constants,
+                o.force_sensitivity, o.displacement_coefficient, o.stiffness, o.bias_current, o.filter_cutoff)
+
+    def jacobian_fn(observer):
+        leaves = paths(observer)
+        sizes = [int(np.size(x)) for x in leaves]
+        theta = jnp.concatenate([jnp.ravel(x) for x in leaves])
+
+        def estimates(th):
+            parts, i = [], 0
+            for x, n in zip(leaves, sizes):
+                parts.append(jnp.reshape(th[i:i + n], jnp.shape(x)))
+                i += n
+            o = eqx.tree_at(paths, observer, tuple(parts))
+            e = o(rec.v_in, rec.v_out, dt)
+            return jnp.concatenate([e.force, e.displacement])
+
+        jac = eqx.filter_jit(jax.jacfwd(estimates))
+        return (lambda: jac(theta)), theta.size
+
+    repeats = 2 if args.quick else 5
+    f_lib, p = jacobian_fn(library)
+    f_gen, _ = jacobian_fn(generic)
+    j_lib, j_gen = np.asarray(f_lib()), np.asarray(f_gen())
+    scale = np.abs(j_gen).max(axis=0)
+    agree = float(np.max(np.abs(j_lib - j_gen) / np.where(scale > 0, scale, 1.0)))
+    t_lib, t_gen = _best(f_lib, repeats), _best(f_gen, repeats)
+    n = len(v)
+    print(f"paper 001 observer: jacfwd of force and displacement, {n} samples, P = {p} free parameters, float64, "
+          f"{jax.devices()[0].platform}")
+    print(f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    print(f"max |J_library - J_generic| / max|column| = {agree:.1e}")
+    print(f"{'path':>20} {'ms':>9}")
+    print(f"{'generic scans':>20} {t_gen * 1e3:>9.1f}")
+    print(f"{'blocks own paths':>20} {t_lib * 1e3:>9.1f}")
+    print(f"ratio generic / library: {t_gen / t_lib:.2f}x")
+    if not agree < 1e-8:
+        raise SystemExit("the two Jacobians differ")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

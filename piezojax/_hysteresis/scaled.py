@@ -1,0 +1,60 @@
+"""A hysteresis operator times a gain: an operator identified in one unit used in another (volts to charge)."""
+
+import equinox as eqx
+from jaxtyping import Array, ArrayLike, PyTree
+
+from .._checks import PiezojaxValueError, check_finite, check_scalar
+from .base import AbstractHysteresis
+
+
+class ScaledHysteresis(AbstractHysteresis):
+    r"""$y = g\,\mathcal{H}[v]$: a hysteresis operator followed by a constant gain.
+
+    Paper 001's observer reads its charge hysteresis in coulombs, $Q_V = C_P\,\mathcal{F}_H[V]$, while the operator
+    $\mathcal{F}_H$ is identified in volts of $C_P$; the gain keeps the operator's parameters of order one. The
+    state is the inner operator's (`init`, `step`, `scan` are its own with the output scaled), so an initial state
+    or a prehistory works as for the operator alone, and the operator's own fast loop and derivatives are used.
+
+    **Arguments:**
+
+    - `hysteresis`: the operator $\mathcal{H}$ (any `AbstractHysteresis`).
+    - `gain`: $g$, a real, finite scalar.
+
+    **Example:**
+
+    ```python
+    charge = pj.ScaledHysteresis(pj.PrandtlIshlinskii(w, r, w0=1.0), gain=1.74e-9)   # C_P * PI[v] in coulombs
+    q = charge(v)
+    ```
+    """
+
+    hysteresis: AbstractHysteresis
+    gain: Array
+
+    def __init__(self, hysteresis: AbstractHysteresis, gain: ArrayLike):
+        if not isinstance(hysteresis, AbstractHysteresis):
+            raise PiezojaxValueError(
+                f"`hysteresis` must be an AbstractHysteresis, got {type(hysteresis).__name__}"
+            )
+        self.hysteresis = hysteresis
+        self.gain = check_scalar(gain, "gain")
+
+    @property
+    def smoothing(self) -> Array:
+        """The inner operator's `smoothing`."""
+        return self.hysteresis.smoothing
+
+    def check(self) -> "ScaledHysteresis":
+        checked = (self.hysteresis.check(), check_finite(self.gain, "gain"))
+        return eqx.tree_at(lambda m: (m.hysteresis, m.gain), self, checked)
+
+    def init(self) -> PyTree[Array]:
+        return self.hysteresis.init()
+
+    def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
+        state, h = self.hysteresis.step(state, v)
+        return state, self.gain.astype(h.dtype) * h
+
+    def _run(self, state, signal):
+        state, h = self.hysteresis._run(state, signal)
+        return state, self.gain.astype(h.dtype) * h
