@@ -449,7 +449,7 @@ def make_synthetic_test(path, *, fs=750.0, sweep_samples=20000, noise=NOISE_DEFA
     pad = max(1024, sweep_samples // 8)  # the same zero padding as the scoring simulator's default
     u_pad = jnp.asarray(np.concatenate([u_sw, np.zeros(pad)]))
     y_sw = np.asarray(bw.simulate(u_pad, dt, hold="periodic", rtol=rtol, num_samples=sweep_samples))
-    with fitting.atomic_file(path) as tmp, h5py.File(tmp, "w") as f:
+    with fitting.files.atomic_file(path) as tmp, h5py.File(tmp, "w") as f:
         for name, uu, yy in (("multisine", u_ms, y_ms), ("sinesweep", u_sw, y_sw)):
             g = f.create_group(name)
             g["u"] = uu[:, None]
@@ -497,13 +497,13 @@ def save_figure(path, data, pred, test=None, test_preds=None):
             i += 1
         axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
-    with fitting.atomic_file(path) as tmp:
+    with fitting.files.atomic_file(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
 
 
 def write_json(path, obj):
-    fitting.save_json(path, obj)  # strict JSON (NaN and inf as null), atomic
+    fitting.files.save_json(path, obj)  # strict JSON (NaN and inf as null), atomic
 
 
 def format_parameters(start: dict, fitted: dict) -> str:

@@ -217,7 +217,7 @@ def main(argv=None) -> int:
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)  # e.g. results/ in a fresh clone
-    fitting.check_writable(out)  # before any long work
+    fitting.files.check_writable(out)  # before any long work
     t_start = time.perf_counter()
 
     _progress("[1/4] simulating the paper 001 bench records ...")
@@ -248,8 +248,8 @@ def main(argv=None) -> int:
                "staged": strip(ev_staged), "joint": strip(ev_joint), "joint_fit": result.summary(),
                "timing_s": {"records": t_records, "staged": t_staged, "joint": t_joint},
                "quick": bool(args.quick)}
-    with fitting.atomic_directory(out, overwrite=True) as tmp:
-        fitting.save_json(tmp / "summary.json", summary)
+    with fitting.files.atomic_directory(out, overwrite=True) as tmp:
+        fitting.files.save_json(tmp / "summary.json", summary)
         (tmp / "table.txt").write_text(text + "\n" + timing + "\n")
         (tmp / "report.txt").write_text(result.report() + "\n")
         figures(held, ev_staged, ev_joint, tmp)

@@ -26,7 +26,7 @@ import numpy as np
 
 import fitting
 import piezojax as pj
-from fitting._initialise import cold_start_actuator, cold_start_free
+from fitting import cold_start_actuator, cold_start_free
 
 DT = 2.5e-4  # 4 kHz
 N = 4000  # samples per experiment (1 s)

@@ -606,8 +606,8 @@ def main(argv=None):
         "run_seconds": elapsed,
     }
     out = Path(args.out)
-    with fitting.atomic_directory(out, overwrite=True) as tmp:
-        fitting.save_json(tmp / "metrics.json", report)
+    with fitting.files.atomic_directory(out, overwrite=True) as tmp:
+        fitting.files.save_json(tmp / "metrics.json", report)
         (tmp / "table.txt").write_text(table + "\n")
         np.savez_compressed(tmp / "predictions.npz", t=data["t"], x=data["x"], v=data["v"], **preds)
         save_figures(tmp, data, preds)

@@ -9,6 +9,8 @@
   normal-equation form: $J^\top J$ and $J^\top r$ by forward mode at each accepted point, a chunk of experiments at
   a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN.
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
+- Files: the submodule `fitting.files` writes files and folders completely or not at all (used by the command line
+  and the experiments; not part of the calibration API above).
 
 Importing `fitting` is cheap: each name is imported from its module on first use (PEP 562), so the command line
 (`fitting.cli`) can install its signal handlers before JAX is loaded.
@@ -26,10 +28,6 @@ _EXPORTS = {
     "._initialise": ("cold_start_actuator", "cold_start_free"),
     "._kinds": ("BlockKind", "ConfigTable", "StartData", "register_kind", "registered_kinds", "unregister_kind"),
     "._model_kinds": ("ModelKind", "register_model_kind"),
-    "._io": (
-        "atomic_directory", "atomic_file", "atomic_write_bytes", "atomic_write_text", "check_writable", "save_json",
-        "to_jsonable",
-    ),
     "._predict": (
         "ExperimentArrays", "Predictor", "actuator_predictor", "default_predictor", "hysteresis_predictor",
         "observer_predictor", "predict",
@@ -43,6 +41,10 @@ _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
 
 
 def __getattr__(name: str):
+    if name == "files":  # the submodule, loaded on first use like the names above
+        value = importlib.import_module(".files", __name__)
+        globals()[name] = value
+        return value
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'fitting' has no attribute {name!r}")
@@ -52,7 +54,7 @@ def __getattr__(name: str):
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+    return sorted(set(globals()) | set(_LAZY) | {"files"})
 
 
 if TYPE_CHECKING:  # the same names for static analysis
@@ -68,15 +70,6 @@ if TYPE_CHECKING:  # the same names for static analysis
         save_experiment as save_experiment,
     )
     from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
-    from ._io import (
-        atomic_directory as atomic_directory,
-        atomic_file as atomic_file,
-        atomic_write_bytes as atomic_write_bytes,
-        atomic_write_text as atomic_write_text,
-        check_writable as check_writable,
-        save_json as save_json,
-        to_jsonable as to_jsonable,
-    )
     from ._kinds import (
         BlockKind as BlockKind,
         ConfigTable as ConfigTable,

@@ -25,7 +25,7 @@ import numpy as np
 
 from piezojax._checks import PiezojaxValueError
 
-from ._io import atomic_file, atomic_write_bytes
+from .files import atomic_file, atomic_write_bytes
 
 CHANNELS: tuple[str, ...] = ("v_out", "displacement", "force", "charge", "current")
 """Measured channels besides `t` [s] and `v_in` [V], all in SI units:

@@ -11,7 +11,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError, common_float_dtype
+from piezojax._checks import PiezojaxValueError
+from piezojax._dtypes import common_float_dtype
 
 from ._predict import ExperimentArrays, Predictor, default_predictor
 

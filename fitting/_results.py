@@ -171,7 +171,7 @@ class FitResult:
 
         `overwrite=True` replaces only a folder written by an earlier `save` (or `piezojax fit`), recognised by its
         marker file; never the working directory or a folder containing it."""
-        from ._io import atomic_directory
+        from .files import atomic_directory
 
         path = Path(path)
         with atomic_directory(path, overwrite=overwrite, kind="fit") as tmp:
@@ -181,7 +181,7 @@ class FitResult:
     def write_files(self, folder, figures: bool = True, extra: dict | None = None) -> None:
         """Write the files of `save` into the existing folder `folder` (not atomically: for a caller that writes
         into a temporary folder of its own)."""
-        from ._io import save_json
+        from .files import save_json
 
         folder = Path(folder)
         eqx.tree_serialise_leaves(folder / "model.eqx", self.params)

@@ -419,7 +419,7 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
     import fitting
 
     from ._data import SUPPORTED_SUFFIXES, read_file_marker
-    from ._io import _check_replaceable_directory
+    from .files import _check_replaceable_directory
 
     is_file = command == "simulate"
     what = "output file" if is_file else "output folder"
@@ -430,7 +430,7 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
     if is_file and Path(path).suffix.lower() not in SUPPORTED_SUFFIXES:
         raise _error(f"{what} {path!r}: unsupported suffix {Path(path).suffix!r}; its suffix picks the format, one "
                      f"of {', '.join(SUPPORTED_SUFFIXES)}")
-    p = fitting.check_writable(path)
+    p = fitting.files.check_writable(path)
     try:
         rp = p.resolve()
         resolved_inputs = [(f, Path(f).expanduser().resolve()) for f in inputs]
@@ -594,7 +594,7 @@ def _cmd_fit(args) -> int:
     out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
     config = load_config(args.config)
     settings = _data_settings(args, config.data)
-    with fitting.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
+    with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
         if args.window is not None:
             dataset = _windowed(dataset, args.window)
@@ -660,7 +660,7 @@ def _cmd_fit(args) -> int:
             extra["cli"]["reseeded"] = reseeded
         _info(f"writing {out}", quiet)
         result.write_files(tmp, figures=not args.no_figures, extra=extra)
-        fitting.atomic_write_text(tmp / "config.toml", config.text)
+        fitting.files.atomic_write_text(tmp / "config.toml", config.text)
         _check_interrupted()
         _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
     _out(result.report())
@@ -712,7 +712,7 @@ def _cmd_predict(args) -> int:
                         fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
     settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
-    with fitting.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
+    with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
         results, metrics = [], {}
         history = _load_data(args.history, settings)[0] if args.history else ()
@@ -738,7 +738,7 @@ def _cmd_predict(args) -> int:
         for exp, preds in results:
             pred_exp = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
             fitting.save_experiment(pred_exp, tmp / f"{names[exp.name]}.csv")
-        fitting.save_json(tmp / "metrics.json", {
+        fitting.files.save_json(tmp / "metrics.json", {
             "model": str(Path(args.model_dir).absolute()),
             "files": {exp.name: {"input": exp.source, "output": f"{names[exp.name]}.csv"} for exp, _ in results},
             "metrics": metrics,

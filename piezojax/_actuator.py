@@ -9,7 +9,8 @@ from ._checks import PiezojaxValueError, check_finite, check_positive, check_sca
 from ._creep.base import AbstractCreep
 from ._creep.linear import LinearCreep
 from ._custom_types import Signal, SignalLike
-from ._hysteresis.base import AbstractHysteresis, cast_module, module_float_dtype
+from ._dtypes import cast_module, module_float_dtype
+from ._hysteresis.base import AbstractHysteresis
 from ._linear.base import AbstractLinearSystem
 
 _STRUCTURES = ("parallel", "series")

@@ -21,21 +21,6 @@ class PiezojaxValueError(ValueError):
     """Raised when an argument to a piezojax function has the wrong shape, type or value."""
 
 
-def common_float_dtype(*xs: ArrayLike) -> np.dtype:
-    """The floating dtype that holds every argument without loss (float32 stays float32).
-
-    Explicit, so it works under `jax_numpy_dtype_promotion='strict'`. Complex arguments are ignored here (they are
-    rejected, naming the argument, by `as_float_array`).
-    """
-    dtype = None
-    for x in xs:
-        d = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
-        if not jnp.issubdtype(d, jnp.floating):
-            continue
-        dtype = d if dtype is None else np.promote_types(dtype, d)
-    if dtype is None:
-        dtype = jnp.zeros(()).dtype  # default float dtype (float32 or float64 under x64)
-    return jax.dtypes.canonicalize_dtype(dtype)
 
 
 def concrete_or_none(x: Array):

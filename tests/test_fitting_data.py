@@ -20,7 +20,7 @@ from fitting._data import (
     load_experiment,
     save_experiment,
 )
-from fitting._io import (
+from fitting.files import (
     atomic_directory,
     atomic_write_bytes,
     atomic_write_text,
@@ -569,7 +569,7 @@ def test_atomic_directory_overwrite_replaces(tmp_path):
 
 def test_atomic_directory_overwrite_fallback_without_exchange(tmp_path, monkeypatch):
     # Where renameat2 is unavailable: two renames, old parked aside, then removed.
-    import fitting._io as fio
+    import fitting.files as fio
 
     monkeypatch.setattr(fio, "_exchange", lambda a, b: False)
     out = tmp_path / "run"

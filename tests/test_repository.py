@@ -36,3 +36,54 @@ def test_fitting_imports_lazily_and_exports_every_name():
             "[getattr(fitting, n) for n in fitting._LAZY]; print(set(fitting._LAZY) <= set(dir(fitting)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "True"]  # the command line installs its signal handlers before JAX is imported
+
+
+def _imports(path: pathlib.Path) -> set[str]:
+    """The absolute module names `path` imports (relative imports resolved against its package)."""
+    import ast
+
+    package = list(path.relative_to(ROOT).with_suffix("").parts[:-1])
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            out.add(module)
+            out |= {f"{module}.{a.name}" for a in node.names}
+    return out
+
+
+# What each folder may import from the library (README, "Layout"); a new edge is a design decision, not an accident.
+ALLOWED = {
+    "piezojax._hysteresis": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._hysteresis"},
+    "piezojax._linear": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._linear"},
+    "piezojax._nonlinear": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._nonlinear"},
+    "piezojax._creep": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._creep",
+                        "piezojax._linear", "piezojax._hysteresis.play"},
+    "piezojax._circuits": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._circuits",
+                           "piezojax._linear"},
+    "piezojax._observers": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._observers",
+                            "piezojax._circuits", "piezojax._linear"},
+}
+
+
+def test_layers_import_only_what_the_layout_allows():
+    problems = []
+    for folder, allowed in ALLOWED.items():
+        for path in sorted((ROOT / folder.replace(".", "/")).glob("*.py")):
+            for name in _imports(path):
+                if name.startswith("piezojax.") and not any(name == a or name.startswith(a + ".") for a in allowed):
+                    problems.append(f"{path.relative_to(ROOT)} imports {name}")
+    # fitting and the experiments use the library, never its benches' private code
+    for path in sorted((ROOT / "fitting").glob("*.py")) + sorted((ROOT / "experiments").glob("*.py")):
+        for name in _imports(path):
+            if name.startswith("piezojax._benches"):
+                problems.append(f"{path.relative_to(ROOT)} imports {name}")
+            if path.parent.name == "experiments" and name.startswith("fitting._"):
+                problems.append(f"{path.relative_to(ROOT)} imports {name} (use fitting's public API)")
+    assert not problems, "\n".join(problems)
+    # the check sees real edges (a resolver that saw none would pass vacuously)
+    assert "piezojax._creep.lags.lag_columns" in _imports(ROOT / "fitting" / "_staged.py")
+    assert "piezojax._linear.base" in _imports(ROOT / "piezojax" / "_creep" / "linear.py")

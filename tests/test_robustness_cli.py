@@ -477,11 +477,11 @@ def test_fitresult_save_overwrites_only_a_fit_folder(bench, tmp_path):
     other.mkdir()
     (other / "notes.txt").write_text("keep me\n")
     with pytest.raises(pj.PiezojaxValueError, match="no piezojax marker"):
-        with fitting.atomic_directory(other, overwrite=True, kind="fit"):
+        with fitting.files.atomic_directory(other, overwrite=True, kind="fit"):
             pass
     assert (other / "notes.txt").read_text() == "keep me\n"
     with pytest.raises(pj.PiezojaxValueError, match="working directory"):
-        with fitting.atomic_directory(Path.cwd(), overwrite=True):
+        with fitting.files.atomic_directory(Path.cwd(), overwrite=True):
             pass
 
 
@@ -495,16 +495,16 @@ def test_leftovers_of_killed_runs_are_removed_and_live_writers_refused(tmp_path)
     (tmp_path / f".run.tmp-{pid}-abcdefgh").mkdir()
     (tmp_path / f".run.tmp-{pid}-abcdefgh" / "model.eqx").write_bytes(b"partial")
     (tmp_path / f".run.tmp-{pid}-old-zz").mkdir()
-    with fitting.atomic_directory(out) as d:
+    with fitting.files.atomic_directory(out) as d:
         (d / "x").write_text("1")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
     live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         (tmp_path / f".run2.tmp-{live.pid}-abcdefgh").mkdir()
         with pytest.raises(pj.PiezojaxValueError, match=rf"another process \(pid {live.pid}\) is writing"):
-            with fitting.atomic_directory(tmp_path / "run2"):
+            with fitting.files.atomic_directory(tmp_path / "run2"):
                 pass
-        with fitting.atomic_directory(tmp_path / "run2.v2") as d:  # another output: not blocked by run2's writer
+        with fitting.files.atomic_directory(tmp_path / "run2.v2") as d:  # another output: not blocked by run2's writer
             (d / "x").write_text("1")
         fitting.save_experiment(fitting.Experiment.from_arrays(v_in=np.ones(3), dt=1e-3), tmp_path / "run2.csv")
     finally:

@@ -75,9 +75,6 @@ class IvanBench(eqx.Module):
     $C$ = 10 nF, $C_R$ = 1.5 nF, $R_{FP}$ = 100 GΩ, $i_{bias}$ = 10 fA drifting 1 fA per 100 s, 1 kHz sampling, noise
     0.2 mV on $V_{out}$, 2 µN on the force sensor, 20 nm on the optical displacement sensor, 16-bit ±10 V converters.
     Pass `hysteresis=` for another operator in volts (e.g. `BoucWen(0.1, 0.01, 0.01, d=1.0)`, the previous truth).
-
-    A 1000 s record (1e6 samples) takes 4.6 s under `eqx.filter_jit` after compilation (30 s for the first call) on
-    the 2-core development CPU while it ran other jobs (load average 11).
     """
 
     capacitance_p: Array

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, as_float_array, check_finite, check_positive, check_signal, check_step
-from .._hysteresis.base import cast_module, module_float_dtype
+from .._dtypes import cast_module, module_float_dtype
 
 
 def _float_array(x: ArrayLike, name: str) -> Array:

@@ -8,7 +8,7 @@ from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, check_scalar, check_signal, check_step
 from .._custom_types import Signal, SignalLike
-from .._hysteresis.base import cast_module, module_float_dtype
+from .._dtypes import cast_module, module_float_dtype
 
 
 class AbstractCreep(eqx.Module):

@@ -5,14 +5,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import (
-    PiezojaxValueError,
-    as_float_array,
-    check_positive,
-    check_scalar,
-    check_vector,
-    common_float_dtype,
-)
+from .._checks import PiezojaxValueError, as_float_array, check_positive, check_scalar, check_vector
+from .._dtypes import common_float_dtype
 from .base import AbstractCreep
 from .lags import lag_sum
 

@@ -4,14 +4,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import (
-    PiezojaxValueError,
-    as_float_array,
-    check_finite,
-    check_positive,
-    check_scalar,
-    common_float_dtype,
-)
+from .._checks import PiezojaxValueError, as_float_array, check_finite, check_positive, check_scalar
+from .._dtypes import common_float_dtype
 from .base import AbstractCreep
 
 _LN10 = 2.302585092994046

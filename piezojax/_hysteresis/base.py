@@ -6,27 +6,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import Array, ArrayLike, PyTree
+from jaxtyping import Array, PyTree
 
-from .._checks import check_signal, common_float_dtype
+from .._checks import check_signal
 from .._custom_types import Signal, SignalLike
-
-
-def cast_module(module: eqx.Module, dtype) -> eqx.Module:
-    """Cast every floating array leaf of `module` to `dtype` (so float32 signals run in float32)."""
-
-    def cast(x):
-        if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dtype:
-            return x.astype(dtype)
-        return x
-
-    return jtu.tree_map(cast, module)
-
-
-def module_float_dtype(module: eqx.Module, *extra: ArrayLike):
-    """The common floating dtype of a module's array leaves and `extra` arrays."""
-    leaves = [x for x in jtu.tree_leaves(module) if eqx.is_array(x)]
-    return common_float_dtype(*leaves, *extra)
+from .._dtypes import cast_module, module_float_dtype
 
 
 class AbstractHysteresis(eqx.Module):

@@ -9,8 +9,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, check_scalar, check_value, concrete_or_none
 from .._custom_types import ScalarLike, Signal, SignalLike
+from .._dtypes import param_dtype
 from .base import AbstractHysteresis
-from .play import param_dtype
 
 _OUTPUTS = ("dv-z", "dv+z", "z")
 _METHODS = ("closed_form", "rk4")

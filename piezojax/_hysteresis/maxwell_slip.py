@@ -6,14 +6,9 @@ from jaxtyping import Array, Float
 
 from .._checks import PiezojaxValueError, check_positive, check_vector
 from .._custom_types import ScalarLike, VectorLike
+from .._dtypes import param_dtype
 from .base import AbstractHysteresis
-from .play import (
-    check_smoothing,
-    error_if_bad_smoothing,
-    param_dtype,
-    run_exact_or_smooth,
-    stop_update,
-)
+from .play import check_smoothing, error_if_bad_smoothing, run_exact_or_smooth, stop_update
 
 
 class MaxwellSlip(AbstractHysteresis):

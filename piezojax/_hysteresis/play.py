@@ -28,6 +28,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_positive, check_value, concrete_or_none
 from .._custom_types import ScalarLike
+from .._dtypes import param_dtype
 from .base import AbstractHysteresis
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -187,10 +188,8 @@ def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
     XLA:CPU compiles a scan whose body touches little memory (about 1 KiB) into one fused loop, and runs bigger bodies
     op by op, at a few hundred ns per op per sample: the smooth step falls in the second class, the exact one in the
     first. So the choice between the exact and the smooth loop is made outside the loop: in Python when `smoothing`
-    is concrete, else with `lax.cond` (a traced smoothing still does not recompile when it changes). Measured on a
-    16-play PI (float64, 1e5 samples, 2-core CPU with load average 8-10): exact 34-42 ns/sample (closed-over
-    operator) and 63-133 ns/sample (traced operator, `lax.cond`), against 600-900 ns/sample for the general step
-    in the loop and 850-1000 ns/sample for the smooth operator.
+    is concrete, else with `lax.cond` (a traced smoothing still does not recompile when it changes). The exact loop
+    is an order of magnitude faster per sample than the general step; `experiments.bench_hysteresis` measures it.
     """
 
     def run(exact: bool):
@@ -373,13 +372,6 @@ def _stop_scan_jvp(exact, primals, tangents):
 # ---------------------------------------------------------------------------------------------------------------------
 
 
-def param_dtype(*xs):
-    """The floating dtype of the array-valued arguments (Python scalars and lists follow them; complex arguments are
-    left to `as_float_array`, which rejects them naming the argument)."""
-    dtypes = [np.dtype(x.dtype) for x in xs if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
-    if not dtypes:
-        return jnp.zeros(()).dtype
-    return jax.dtypes.canonicalize_dtype(np.result_type(*dtypes))
 
 
 def check_thresholds_shape(x: ArrayLike, name: str, dtype, allow_scalar: bool) -> Array:

@@ -16,6 +16,7 @@ from .._checks import (
     check_vector,
 )
 from .._custom_types import ScalarLike, VectorLike
+from .._dtypes import param_dtype
 from .play import (
     _AbstractStopCell,
     _tangent_or_none,
@@ -23,7 +24,6 @@ from .play import (
     error_if_bad_smoothing,
     exact_flag,
     input_tangent_scan,
-    param_dtype,
     scan_exact_or_smooth,
     sensitivity_scan,
     stop_update,

@@ -16,13 +16,13 @@ from .._checks import (
     concrete_or_none,
 )
 from .._custom_types import ScalarLike, VectorLike
+from .._dtypes import param_dtype
 from .base import AbstractHysteresis
 from .play import (
     _AbstractStopCell,
     check_smoothing,
     error_if_bad_smoothing,
     exact_flag,
-    param_dtype,
     play_step,
     scan_exact_or_smooth,
     stop_update,

@@ -9,7 +9,7 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from .._checks import as_float_array, check_signal
 from .._custom_types import Signal, SignalLike
-from .._hysteresis.base import cast_module, module_float_dtype
+from .._dtypes import cast_module, module_float_dtype
 from .discretise import DiscreteStateSpace, check_hold, discretise_state_space
 
 

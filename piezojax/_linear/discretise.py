@@ -15,9 +15,9 @@ from .._checks import (
     check_step,
     check_value,
     check_vector,
-    common_float_dtype,
 )
 from .._custom_types import Signal, SignalLike
+from .._dtypes import common_float_dtype
 
 _HOLDS = ("zoh", "foh")
 
@@ -31,12 +31,12 @@ def expm(M: Float[Array, "k k"]) -> Float[Array, "k k"]:
     r"""Matrix exponential by scaling and squaring with a degree-18 Taylor polynomial; differentiable in both modes.
 
     $M$ is scaled by $2^{-s}$ to $\|M\|_1 \le 1$, where the truncation error of the Taylor polynomial is below
-    $1/19! pprox 8\cdot10^{-18}$ (double precision); the result is squared $s$ times.
+    $1/19! \approx 8\cdot10^{-18}$ (double precision); the result is squared $s$ times.
 
     Why not `jax.scipy.linalg.expm` (Padé): it compiles five Padé branches under `lax.cond` plus an LU solve, which
     cost 2-6 s of XLA compile time per matrix shape on our CPU, and every model structure is a new shape; this
     polynomial (Horner, 18 small matmuls) compiles in a fraction of that, needs no solve, and keeps the blocks of
-    integrals of $e^{A	au}$ accurate to relative rounding.
+    integrals of $e^{A\tau}$ accurate to relative rounding.
     """
     dot = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
     dtype = M.dtype
@@ -86,11 +86,9 @@ def time_step(t: SignalLike, rtol: float = 1e-6) -> Array:
     t = check_signal(t, "t")
     if t.shape[0] < 2:
         raise PiezojaxValueError("`t` needs at least 2 samples to define a sampling step")
-    steps = jnp.diff(t)
-    t = eqx.error_if(t, jnp.any(steps <= 0), "`t` must be strictly increasing")
+    t = check_value(t, lambda x: jnp.all(jnp.diff(x) > 0), "`t` must be strictly increasing")
     dt = (t[-1] - t[0]) / (t.shape[0] - 1)
-    dt = eqx.error_if(dt, jnp.any(jnp.abs(steps - dt) > rtol * dt), "`t` must be uniformly sampled")
-    return dt
+    return check_value(dt, lambda d: jnp.all(jnp.abs(jnp.diff(t) - d) <= rtol * d), "`t` must be uniformly sampled")
 
 
 class DiscreteStateSpace(eqx.Module):

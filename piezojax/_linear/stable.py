@@ -6,15 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import (
-    PiezojaxValueError,
-    as_float_array,
-    check_scalar,
-    check_value,
-    check_vector,
-    common_float_dtype,
-    concrete_or_none,
-)
+from .._checks import PiezojaxValueError, as_float_array, check_scalar, check_value, check_vector, concrete_or_none
+from .._dtypes import common_float_dtype
 from .base import AbstractLinearSystem
 from .transfer_function import TransferFunction, normalise_tf
 

@@ -16,14 +16,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from .._checks import (
-    PiezojaxValueError,
-    as_float_array,
-    check_finite,
-    check_step,
-    check_value,
-    common_float_dtype,
-)
+from .._checks import PiezojaxValueError, as_float_array, check_finite, check_step, check_value
+from .._dtypes import common_float_dtype
 
 HOLDS = ("zoh", "linear", "periodic")
 

@@ -5,8 +5,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_scalar, check_value, common_float_dtype
+from .._checks import PiezojaxValueError, check_scalar, check_value
 from .._custom_types import Signal, SignalLike
+from .._dtypes import common_float_dtype
 from ._input import check_samples, check_step, simulate_ode
 from .fixed_step import rk4_scan, stage_inputs
 

@@ -6,15 +6,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import (
-    PiezojaxValueError,
-    as_float_array,
-    check_positive,
-    check_scalar,
-    check_value,
-    check_vector,
-    common_float_dtype,
-)
+from .._checks import PiezojaxValueError, as_float_array, check_positive, check_scalar, check_value, check_vector
+from .._dtypes import common_float_dtype
 from ._input import check_samples, check_step
 
 _SCALARS = ("m", "b", "k", "capacitance")
@@ -211,9 +204,9 @@ class ElectromechanicalActuator(eqx.Module):
         model = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, self).check()
         h = dt / substeps
         # Bound on the mechanical eigenvalues |lambda| <= sqrt(k/m) + b/m; explicit Tsit5 is stable for |h lambda| < 3.
-        stable = h * (jnp.sqrt(model.k / model.m) + model.b / model.m) <= 3.0
-        h = eqx.error_if(h, ~stable, "`dt / substeps` too large for the mechanics (explicit Tsit5 needs "
-                         "h*(sqrt(k/m) + b/m) <= 3): increase `substeps` or decrease `dt`")
+        h = check_value(h, lambda x: x * (jnp.sqrt(model.k / model.m) + model.b / model.m) <= 3.0,
+                        "`dt / substeps` too large for the mechanics (explicit Tsit5 needs h*(sqrt(k/m) + b/m) <= 3): "
+                        "increase `substeps` or decrease `dt`")
 
         # Per-sample input pieces u(t_k + tau) = a + b tau on [t_k, t_k+1]; after the last sample the input is held.
         inputs = jnp.stack([v_in, f_ext], axis=1)

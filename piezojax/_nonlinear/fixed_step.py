@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, common_float_dtype
+from .._checks import PiezojaxValueError
+from .._dtypes import common_float_dtype
 from ._input import _bandlimited_upsample, check_samples, check_step
 
 

@@ -1,4 +1,7 @@
-"""Atomic file output: nothing the calibration engine writes is ever left half-way.
+"""Atomic file output: nothing the calibration engine writes is ever left half-way (`fitting.files`).
+
+Public for scripts that write their own results the same way (`experiments`): `atomic_file`,
+`atomic_write_bytes`, `atomic_write_text`, `atomic_directory`, `check_writable`, `save_json`, `to_jsonable`.
 
 Every writer goes through a temporary sibling (same directory, so the final `os.replace` is an atomic rename on the
 same filesystem), is flushed and fsync'ed, and only then renamed onto the destination. On any exception —

@@ -1,0 +1,55 @@
+"""Floating dtypes: which dtype a computation runs in, and casting a module's parameters to it.
+
+Every block runs in the common floating dtype of its parameters and signals (float32 stays float32, float64 under
+x64 stays float64); these are the helpers that decide it, used by every family.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jaxtyping import ArrayLike
+
+
+def common_float_dtype(*xs: ArrayLike) -> np.dtype:
+    """The floating dtype that holds every argument without loss (float32 stays float32).
+
+    Explicit, so it works under `jax_numpy_dtype_promotion='strict'`. Complex arguments are ignored here (they are
+    rejected, naming the argument, by `as_float_array`).
+    """
+    dtype = None
+    for x in xs:
+        d = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
+        if not jnp.issubdtype(d, jnp.floating):
+            continue
+        dtype = d if dtype is None else np.promote_types(dtype, d)
+    if dtype is None:
+        dtype = jnp.zeros(()).dtype  # default float dtype (float32 or float64 under x64)
+    return jax.dtypes.canonicalize_dtype(dtype)
+
+
+def param_dtype(*xs):
+    """The floating dtype of the array-valued arguments (Python scalars and lists follow them; complex arguments are
+    left to `as_float_array`, which rejects them naming the argument)."""
+    dtypes = [np.dtype(x.dtype) for x in xs if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)]
+    if not dtypes:
+        return jnp.zeros(()).dtype
+    return jax.dtypes.canonicalize_dtype(np.result_type(*dtypes))
+
+
+def cast_module(module: eqx.Module, dtype) -> eqx.Module:
+    """Cast every floating array leaf of `module` to `dtype` (so float32 signals run in float32)."""
+
+    def cast(x):
+        if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dtype:
+            return x.astype(dtype)
+        return x
+
+    return jtu.tree_map(cast, module)
+
+
+def module_float_dtype(module: eqx.Module, *extra: ArrayLike):
+    """The common floating dtype of a module's array leaves and `extra` arrays."""
+    leaves = [x for x in jtu.tree_leaves(module) if eqx.is_array(x)]
+    return common_float_dtype(*leaves, *extra)
