@@ -10,6 +10,7 @@ from ._benches.bafumba import (
 )
 from ._benches.chen import ChenBench as ChenBench
 from ._benches.common import (
+    AbstractBench as AbstractBench,
     Record as Record,
     step_command as step_command,
 )

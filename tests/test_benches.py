@@ -112,6 +112,25 @@ def test_bafumba_long_record_speed():
     assert float(jnp.max(jnp.abs(rec.v_out))) < 10.0  # the 200 V step stays inside the converter range
 
 
+def test_benches_share_one_interface():
+    # every bench is an AbstractBench: record / ideal / observer, sample_rate and adc_bits
+    for bench in (pj.BafumbaBench(), pj.IvanBench(), pj.ChenBench()):
+        assert isinstance(bench, pj.AbstractBench)
+        assert isinstance(bench.observer(), pj.AbstractObserver)
+        ideal = bench.ideal()
+        assert type(ideal) is type(bench) and ideal.adc_bits == 0 and ideal.sample_rate == bench.sample_rate
+
+    class Incomplete(pj.AbstractBench):
+        sample_rate: float = 1e3
+        adc_bits: int = 0
+
+        def record(self, command, key):
+            raise NotImplementedError
+
+    with pytest.raises(TypeError, match="abstract"):
+        Incomplete()
+
+
 def test_bench_seeding():
     bench = pj.BafumbaBench()
     v = V_LONG  # the shape compiled by the speed test

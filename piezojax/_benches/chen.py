@@ -8,10 +8,10 @@ from jaxtyping import Array, ArrayLike, PRNGKeyArray
 from .._circuits.smart_stack import SmartStackCircuit
 from .._hysteresis.bouc_wen import BoucWen
 from .._observers.sensor_layer import SensorLayerObserver
-from .common import Record, bench_param, bench_signal, lag, measure, replace_fields
+from .common import AbstractBench, Record, bench_param, bench_signal, lag, measure, replace_fields
 
 
-class ChenBench(eqx.Module):
+class ChenBench(AbstractBench):
     r"""Virtual bench of paper 002 (Chen & Li 2014), richer than the eq. (9) observer.
 
     Truth: stack displacement $x_a = s_x\,\mathcal{B}[V_a]$ with a Bouc–Wen hysteresis $\mathcal{B}$ (the paper

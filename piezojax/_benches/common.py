@@ -1,4 +1,7 @@
-"""Shared pieces of the virtual benches: the record type, acquisition (noise, ADC) and drive signals."""
+"""Shared pieces of the virtual benches: the bench interface, the record type, acquisition (noise, ADC) and drive
+signals."""
+
+import abc
 
 import equinox as eqx
 import jax
@@ -8,6 +11,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import PiezojaxValueError, as_float_array, check_finite, check_signal
 from .._creep.lags import lag_sum
+from .._observers.base import AbstractObserver
 
 
 class Record(eqx.Module):
@@ -34,6 +38,31 @@ class Record(eqx.Module):
     def dt(self) -> Array:
         """The sample step (also for a batch of records stacked along a leading axis)."""
         return self.t[..., 1] - self.t[..., 0]
+
+
+class AbstractBench(eqx.Module):
+    """A seeded virtual bench: a truth model richer than the paper's observer, plus the lab's acquisition.
+
+    Concrete benches define `record(command, key) -> Record` (one record from rest for the drive samples, seeded
+    by `key`; works under `eqx.filter_jit` and `jax.vmap` over commands and keys), `ideal()` (the same bench without
+    noise, quantisation or drift) and `observer(...)` (the paper's observer with the bench's nominal constants), and
+    carry their `sample_rate` [Hz] and converter resolution `adc_bits` (0: no quantisation) as static fields.
+    """
+
+    sample_rate: eqx.AbstractVar[float]
+    adc_bits: eqx.AbstractVar[int]
+
+    @abc.abstractmethod
+    def record(self, command: ArrayLike, key: PRNGKeyArray) -> Record:
+        """One record for the drive samples `command` (from rest), seeded by `key`."""
+
+    @abc.abstractmethod
+    def ideal(self) -> "AbstractBench":
+        """The same bench without noise, quantisation or drift."""
+
+    @abc.abstractmethod
+    def observer(self, *args, **kwargs) -> AbstractObserver:
+        """The paper's observer with the bench's nominal constants."""
 
 
 def bench_param(x: ArrayLike, name: str) -> Array:
