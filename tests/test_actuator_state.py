@@ -209,6 +209,14 @@ def test_scaled_hysteresis_is_the_operator_times_its_gain():
                                    rtol=1e-5, atol=1e-14)
     batched = jax.vmap(lambda g: pj.ScaledHysteresis(inner, g)(v))(jnp.array([1.0, -2.0]))
     np.testing.assert_allclose(batched[1], -2.0 * batched[0], rtol=1e-12)
+    # a Python gain takes the operator's dtype, strongly typed (no float64 promotion, no retrace on a swap)
+    inner32 = pj.PrandtlIshlinskii(W.astype(np.float32), R.astype(np.float32), w0=np.float32(W0))
+    op32 = pj.ScaledHysteresis(inner32, 2.0)
+    assert op32.gain.dtype == np.float32 and not op32.gain.weak_type
+    assert op32(v.astype(np.float32)).dtype == np.float32
+    # a wrapped Bouc-Wen runs its own sub-stepped loop: the same output as the operator times the gain
+    bw = pj.BoucWen(1.0, 0.5, 0.2, n=1.5, method="rk4", substeps=4)
+    np.testing.assert_allclose(pj.ScaledHysteresis(bw, 3.0)(v), 3.0 * bw(v), rtol=1e-13, atol=1e-13)
     with pytest.raises(pj.PiezojaxValueError, match="gain"):
         pj.ScaledHysteresis(inner, float("nan"))
     with pytest.raises(pj.PiezojaxValueError, match="hysteresis"):

@@ -120,6 +120,12 @@ def test_benches_share_one_interface():
         ideal = bench.ideal()
         assert type(ideal) is type(bench) and ideal.adc_bits == 0 and ideal.sample_rate == bench.sample_rate
 
+    # the truth creep accepts zero fractions (no creep); only the observer's Kelvin-Voigt form needs them > 0
+    v = jnp.asarray(pj.periodic_steps((-10.0,), period=0.2, cycles=1))
+    no_creep = pj.IvanBench(creep_fractions=(0.0, 0.0))
+    np.testing.assert_allclose(no_creep.free_charge(v, 1e-3), no_creep.capacitance_p * no_creep.hysteresis(v),
+                               rtol=1e-14)
+
     class Incomplete(pj.AbstractBench):
         sample_rate: float = 1e3
         adc_bits: int = 0

@@ -55,6 +55,7 @@ def _imports(path: pathlib.Path) -> set[str]:
     return out
 
 
+FOUNDATIONS = {"_checks", "_dtypes", "_custom_types", "_parametrisation", "_config"}
 # What each folder may import from the library (README, "Layout"); a new edge is a design decision, not an accident.
 ALLOWED = {
     "piezojax._hysteresis": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._hysteresis"},
@@ -74,9 +75,18 @@ def test_layers_import_only_what_the_layout_allows():
     for folder, allowed in ALLOWED.items():
         for path in sorted((ROOT / folder.replace(".", "/")).glob("*.py")):
             for name in _imports(path):
-                if name.startswith("piezojax.") and not any(name == a or name.startswith(a + ".") for a in allowed):
+                if name == "piezojax":  # the package itself, i.e. everything (`from .. import x` is seen as piezojax.x)
+                    problems.append(f"{path.relative_to(ROOT)} imports the whole package")
+                elif name.startswith("piezojax.") and not any(name == a or name.startswith(a + ".") for a in allowed):
                     problems.append(f"{path.relative_to(ROOT)} imports {name}")
     # fitting and the experiments use the library, never its benches' private code
+    # the foundations import no family except through the composed `Actuator` and the public namespace
+    for path in sorted((ROOT / "piezojax").glob("_*.py")):
+        if path.name in ("__init__.py", "_actuator.py"):
+            continue
+        for name in _imports(path):
+            if name.startswith("piezojax._") and name.split(".")[1] not in FOUNDATIONS:
+                problems.append(f"{path.relative_to(ROOT)} (a foundation) imports {name}")
     for path in sorted((ROOT / "fitting").glob("*.py")) + sorted((ROOT / "experiments").glob("*.py")):
         for name in _imports(path):
             if name.startswith("piezojax._benches"):

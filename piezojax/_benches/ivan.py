@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from .._circuits.base import running_integral
 from .._creep.kelvin_voigt import KelvinVoigtCreep
+from .._creep.lags import lag_sum
 from .._hysteresis.base import AbstractHysteresis
 from .._hysteresis.preisach import GaussianPreisach
 from .._hysteresis.scaled import ScaledHysteresis
@@ -158,14 +159,15 @@ class IvanBench(AbstractBench):
     def true_charge_operators(self) -> tuple[ScaledHysteresis, KelvinVoigtCreep]:
         """The bench's own charge operators `(hysteresis, creep)` in the observer's form: with them the observer's
         model is exact (only noise, quantisation and bias drift remain). The creep is the Kelvin–Voigt chain without
-        instantaneous term, $1/k_i = C_P c_i$ (held drive samples, as the observer reads them)."""
+        instantaneous term, $1/k_i = C_P c_i$ (held drive samples, as the observer reads them), so it needs every
+        creep fraction > 0; `free_charge` computes the same creep without that restriction."""
         return (ScaledHysteresis(self.hysteresis, self.capacitance_p),
                 KelvinVoigtCreep(1 / (self.capacitance_p * self.creep_fractions), self.creep_times, k0=None))
 
     def free_charge(self, v: Array, dt: Array) -> Array:
         """$Q_V$ [C]: hysteretic charge plus creep charge of the free actuator."""
-        hysteresis, creep = self.true_charge_operators()
-        return hysteresis(v) + creep(v, dt)
+        creep = lag_sum(self.capacitance_p * self.creep_fractions, self.creep_times, v, dt, "zoh")
+        return self.capacitance_p * self.hysteresis(v) + creep
 
     def record(self, v_in: ArrayLike, key: PRNGKeyArray) -> Record:
         """Simulate one record for the drive samples `v_in` [V] (from rest), seeded by `key`.

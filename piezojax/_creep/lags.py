@@ -26,6 +26,7 @@ import scipy.signal
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError
+from .._dtypes import common_float_dtype
 from .._hysteresis.play import _tangent_or_none
 
 HOLDS = ("zoh", "foh", "interval")
@@ -118,6 +119,8 @@ def lag_sum(c: Array, tau: Array, u: Array, dt: Array, hold: str = "zoh") -> Arr
     **Returns:** shape `(time,)`. Works under `jit`, `vmap`, `jax.jacfwd` and `jax.grad`.
     """
     _check_hold(hold)
+    dtype = common_float_dtype(c, tau, u, dt)
+    c, tau, u, dt = (jnp.asarray(z, dtype) for z in (c, tau, u, dt))
     x = dt / tau
     a = jnp.exp(-x)
     one_minus_a = -jnp.expm1(-x)

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, check_scalar, check_value, concrete_or_none
-from .._custom_types import ScalarLike, Signal, SignalLike
+from .._custom_types import ScalarLike, Signal
 from .._dtypes import param_dtype
 from .base import AbstractHysteresis
 
@@ -335,38 +335,19 @@ class BoucWen(AbstractHysteresis):
         """Advance along the straight line from the previous input to `v`; return `(state, y)`."""
         return self._step(state, v, self.substeps)
 
-    def scan(
-        self, signal: SignalLike, state: Float[ArrayLike, "2"] | None = None
-    ) -> tuple[Float[Array, "2"], Signal]:
-        """Run the operator over `signal` from `state` (default `init()`); return `(final_state,
-        output)`.
-
-        Same result as scanning `step`. With `method="rk4"` the scan runs one RK4 sub-step per scan
-        iteration over the input with `substeps - 1` points inserted on each straight segment (the
-        same path, so the same sub-steps up to rounding): a rolled sub-step loop inside each scan
-        step costs ~5x more on XLA:CPU.
-
-        **Arguments:**
-
-        - `signal`: 1-D real, finite input samples, shape `(time,)`.
-        - `state`: the state to start from, e.g. the final state of an earlier call. Default:
-          `self.init()`.
-
-        **Returns:** `(final_state, y)` with `y` of shape `(time,)`.
-        """
+    def _run(self, state: Array, signal: Signal) -> tuple[Array, Signal]:
+        # Same result as scanning `step`. With `method="rk4"` the scan runs one RK4 sub-step per scan iteration over
+        # the input with `substeps - 1` points inserted on each straight segment (the same path, so the same
+        # sub-steps up to rounding): a rolled sub-step loop inside each scan step costs ~5x more on XLA:CPU. Here,
+        # in `_run`, wrappers (`OutputPolynomial`, `ScaledHysteresis`) get it too.
+        if state.shape != (2,):
+            raise PiezojaxValueError(f"`state` must have shape (2,) ([v_prev, z]), got {state.shape}")
         m = self.substeps
         if self.method != "rk4" or m == 1:
-            return super().scan(signal, state)
-        op, signal, state = self._prepare(signal, state)
-        dtype = signal.dtype
-        if state.shape != (2,):
-            raise PiezojaxValueError(
-                f"`state` must have shape (2,) ([v_prev, z]), got {state.shape}"
-            )
+            return jax.lax.scan(lambda c, v: self._step(c, v, m), state, signal, unroll=self._unroll())
         prev = jnp.concatenate([state[:1], signal[:-1]])
-        frac = jnp.arange(1, m, dtype=dtype) / m
+        frac = jnp.arange(1, m, dtype=signal.dtype) / m
         inner = prev[:, None] + frac[None, :] * (signal - prev)[:, None]
         fine = jnp.concatenate([inner, signal[:, None]], axis=1).reshape(-1)
-        # one sub-step per scan iteration, with the checked (and cast) operator of `_prepare`
-        final, y = jax.lax.scan(lambda c, v: op._step(c, v, 1), state, fine, unroll=op._unroll())
+        final, y = jax.lax.scan(lambda c, v: self._step(c, v, 1), state, fine, unroll=self._unroll())
         return final, y[m - 1 :: m]

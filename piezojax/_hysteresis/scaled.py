@@ -4,6 +4,7 @@ import equinox as eqx
 from jaxtyping import Array, ArrayLike, PyTree
 
 from .._checks import PiezojaxValueError, check_finite, check_scalar
+from .._dtypes import module_float_dtype
 from .base import AbstractHysteresis
 
 
@@ -37,7 +38,10 @@ class ScaledHysteresis(AbstractHysteresis):
                 f"`hysteresis` must be an AbstractHysteresis, got {type(hysteresis).__name__}"
             )
         self.hysteresis = hysteresis
-        self.gain = check_scalar(gain, "gain")
+        # the inner operator's dtype, strongly typed (a Python float would be weak-typed and retrace `jit` when a
+        # fitter swaps in an array)
+        gain = check_scalar(gain, "gain", module_float_dtype(hysteresis))
+        self.gain = gain.astype(gain.dtype) if getattr(gain, "weak_type", False) else gain
 
     @property
     def smoothing(self) -> Array:

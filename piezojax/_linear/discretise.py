@@ -87,8 +87,13 @@ def time_step(t: SignalLike, rtol: float = 1e-6) -> Array:
     if t.shape[0] < 2:
         raise PiezojaxValueError("`t` needs at least 2 samples to define a sampling step")
     t = check_value(t, lambda x: jnp.all(jnp.diff(x) > 0), "`t` must be strictly increasing")
-    dt = (t[-1] - t[0]) / (t.shape[0] - 1)
-    return check_value(dt, lambda d: jnp.all(jnp.abs(jnp.diff(t) - d) <= rtol * d), "`t` must be uniformly sampled")
+    def uniform(x):
+        d = (x[-1] - x[0]) / (x.shape[0] - 1)
+        return jnp.all(jnp.abs(jnp.diff(x) - d) <= rtol * d)
+
+    # the step comes from the checked `t`, so that a traced check stays attached to the result
+    t = check_value(t, uniform, "`t` must be uniformly sampled")
+    return (t[-1] - t[0]) / (t.shape[0] - 1)
 
 
 class DiscreteStateSpace(eqx.Module):
