@@ -118,6 +118,16 @@ def as_float_array(x: ArrayLike, name: str, dtype=None) -> Array:
     return arr
 
 
+def as_parameter_array(x: ArrayLike, name: str, dtype=None) -> Array:
+    """`as_float_array`, strongly typed: a Python scalar becomes a weak-typed array, and a weak-typed leaf retraces
+    `jit` when a fitter swaps in a strongly typed value."""
+    arr = as_float_array(x, name, dtype)
+    if getattr(arr, "weak_type", False):
+        with jax.ensure_compile_time_eval():
+            arr = arr.astype(arr.dtype)
+    return arr
+
+
 def check_signal(x: ArrayLike, name: str = "signal", dtype=None) -> Array:
     """Validate a sampled signal: real (not complex or boolean), 1-D, non-empty, finite (`check_finite`)."""
     arr = as_float_array(x, name, dtype)

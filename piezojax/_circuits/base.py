@@ -14,27 +14,16 @@ Sampling convention (used by every circuit and observer so that an observer inve
 import abc
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, as_float_array, check_finite, check_positive, check_signal, check_step
+from .._checks import PiezojaxValueError, as_parameter_array, check_finite, check_positive, check_signal, check_step
 from .._dtypes import cast_module, module_float_dtype
-
-
-def _float_array(x: ArrayLike, name: str) -> Array:
-    # Python scalars become strongly typed default-float arrays: weak-typed leaves would retrace `jit` when a
-    # fitter swaps in a strongly typed value.
-    arr = as_float_array(x, name)
-    if getattr(arr, "weak_type", False):
-        with jax.ensure_compile_time_eval():
-            arr = arr.astype(arr.dtype)
-    return arr
 
 
 def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False) -> Array:
     """Constructor check of a scalar parameter: a real scalar, finite and > 0 (>= 0 with `allow_zero`)."""
-    x = _float_array(x, name)
+    x = as_parameter_array(x, name)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
     return check_positive(x, name, allow_zero)
@@ -42,7 +31,7 @@ def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False) -> A
 
 def check_scalar_param(x: ArrayLike, name: str) -> Array:
     """Constructor check of a signed scalar parameter: a real scalar, finite."""
-    x = _float_array(x, name)
+    x = as_parameter_array(x, name)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
     return check_finite(x, name)

@@ -87,3 +87,32 @@ class AbstractHysteresis(eqx.Module):
         return 1
 
 
+class AbstractOutputMap(AbstractHysteresis):
+    """An operator followed by a static map of its output (`OutputPolynomial`, `ScaledHysteresis`).
+
+    The state, the smoothing and the loop are the wrapped operator's: `init`, `step` and `_run` are its own with
+    `shape` applied to the output, so an initial state, a prehistory or the operator's fast loop and derivatives
+    work as for the operator alone. Concrete wrappers define `shape` (and `check`).
+    """
+
+    hysteresis: eqx.AbstractVar[AbstractHysteresis]
+
+    @abc.abstractmethod
+    def shape(self, h: Array) -> Array:
+        """The static map applied to the operator's output `h` (any shape)."""
+
+    @property
+    def smoothing(self) -> Array:
+        """The wrapped operator's `smoothing`."""
+        return self.hysteresis.smoothing
+
+    def init(self) -> PyTree[Array]:
+        return self.hysteresis.init()
+
+    def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
+        state, h = self.hysteresis.step(state, v)
+        return state, self.shape(h)
+
+    def _run(self, state, signal):
+        state, h = self.hysteresis._run(state, signal)
+        return state, self.shape(h)

@@ -2,13 +2,13 @@
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, PyTree
+from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, check_finite, check_positive, check_scalar, check_vector
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, AbstractOutputMap
 
 
-class OutputPolynomial(AbstractHysteresis):
+class OutputPolynomial(AbstractOutputMap):
     r"""A hysteresis operator followed by a static polynomial: $y = h + s\sum_{k=2}^{K} a_k (h/s)^k$.
 
     $h = \mathcal{H}[v]$ is the operator's output.
@@ -50,11 +50,6 @@ class OutputPolynomial(AbstractHysteresis):
         self.coefficients = check_vector(coefficients, "coefficients")
         self.scale = check_positive(check_scalar(scale, "scale", self.coefficients.dtype, finite=False), "scale")
 
-    @property
-    def smoothing(self) -> Array:
-        """The inner operator's `smoothing`."""
-        return self.hysteresis.smoothing
-
     def check(self) -> "OutputPolynomial":
         inner = self.hysteresis.check()
         checked = (inner, check_finite(self.coefficients, "coefficients"), check_positive(self.scale, "scale"))
@@ -66,14 +61,3 @@ class OutputPolynomial(AbstractHysteresis):
         x = h / scale
         powers = x[..., None] ** jnp.arange(2, 2 + self.coefficients.shape[0], dtype=x.dtype)
         return h + scale * jnp.sum(self.coefficients.astype(x.dtype) * powers, axis=-1)
-
-    def init(self) -> PyTree[Array]:
-        return self.hysteresis.init()
-
-    def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
-        state, h = self.hysteresis.step(state, v)
-        return state, self.shape(h)
-
-    def _run(self, state, signal):
-        state, h = self.hysteresis._run(state, signal)
-        return state, self.shape(h)

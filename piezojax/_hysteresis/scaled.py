@@ -1,14 +1,14 @@
 """A hysteresis operator times a gain: an operator identified in one unit used in another (volts to charge)."""
 
 import equinox as eqx
-from jaxtyping import Array, ArrayLike, PyTree
+from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, check_finite, check_scalar
+from .._checks import PiezojaxValueError, as_parameter_array, check_finite, check_scalar
 from .._dtypes import module_float_dtype
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, AbstractOutputMap
 
 
-class ScaledHysteresis(AbstractHysteresis):
+class ScaledHysteresis(AbstractOutputMap):
     r"""$y = g\,\mathcal{H}[v]$: a hysteresis operator followed by a constant gain.
 
     Paper 001's observer reads its charge hysteresis in coulombs, $Q_V = C_P\,\mathcal{F}_H[V]$, while the operator
@@ -38,27 +38,13 @@ class ScaledHysteresis(AbstractHysteresis):
                 f"`hysteresis` must be an AbstractHysteresis, got {type(hysteresis).__name__}"
             )
         self.hysteresis = hysteresis
-        # the inner operator's dtype, strongly typed (a Python float would be weak-typed and retrace `jit` when a
-        # fitter swaps in an array)
-        gain = check_scalar(gain, "gain", module_float_dtype(hysteresis))
-        self.gain = gain.astype(gain.dtype) if getattr(gain, "weak_type", False) else gain
+        # the inner operator's dtype, strongly typed (no retrace when a fitter swaps in an array)
+        self.gain = check_scalar(as_parameter_array(gain, "gain", module_float_dtype(hysteresis)), "gain")
 
-    @property
-    def smoothing(self) -> Array:
-        """The inner operator's `smoothing`."""
-        return self.hysteresis.smoothing
+    def shape(self, h: Array) -> Array:
+        """$g h$ for the operator's output `h` (any shape)."""
+        return self.gain.astype(h.dtype) * h
 
     def check(self) -> "ScaledHysteresis":
         checked = (self.hysteresis.check(), check_finite(self.gain, "gain"))
         return eqx.tree_at(lambda m: (m.hysteresis, m.gain), self, checked)
-
-    def init(self) -> PyTree[Array]:
-        return self.hysteresis.init()
-
-    def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
-        state, h = self.hysteresis.step(state, v)
-        return state, self.gain.astype(h.dtype) * h
-
-    def _run(self, state, signal):
-        state, h = self.hysteresis._run(state, signal)
-        return state, self.gain.astype(h.dtype) * h
