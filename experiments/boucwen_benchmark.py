@@ -259,7 +259,7 @@ def _rms(problem, u) -> float:
 def fit_stage(params, dataset, predictor, free, max_steps, label) -> tuple:
     """One `fitting.fit`; prints and returns the RMS error before and after, steps and verdict."""
     result = fitting.fit(params, dataset, predictor=predictor, free=list(free), max_steps=max_steps, progress=False)
-    w = result.problem.weights["displacement"]
+    w = result.weights["displacement"]
     before = float(np.sqrt(2 * result.initial_cost / result.num_residuals)) / w
     after = float(np.sqrt(2 * result.cost / result.num_residuals)) / w
     print(f"  [{label}] fitting.fit: RMS error {before:.3e} -> {after:.3e} m in {result.steps} steps "

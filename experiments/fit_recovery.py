@@ -95,11 +95,16 @@ def make_dataset(seed: int, clean: list[np.ndarray] | None = None, noise_fractio
     return fitting.Dataset(exps)
 
 
-def truth_vector(problem) -> np.ndarray:
-    """The truth's free parameters in `problem.parameter_names()` order."""
-    values = fitting.parameter_paths(truth())
+def truth_vector(names) -> np.ndarray:
+    """The truth's parameters named `names` (a fit's `parameter_names`, e.g. `"hysteresis.weights[3]"`)."""
+    return values_of(truth(), names)
+
+
+def values_of(model, names) -> np.ndarray:
+    """`model`'s parameters (constrained values) named `names`, in that order."""
+    values = fitting.parameter_paths(model)
     out = []
-    for name in problem.parameter_names():
+    for name in names:
         path, _, idx = name.partition("[")
         a = np.ravel(np.asarray(values[path]))
         out.append(a[int(idx[:-1])] if idx else a[0])
@@ -129,14 +134,14 @@ def recovery(realisations: int, warm: bool, seed: int = 0, verbose: bool = True,
     t_init = time.perf_counter() - t0
     res = fit_once(init, ds, rtol=RTOL, atol=ATOL)
     t_fit = time.perf_counter() - t0 - t_init
-    true = truth_vector(res.problem)
+    true = truth_vector(res.parameter_names)
     z = (res.values - true) / res.std_errors
     if verbose:
         print(
             f"cold start {t_init:.1f} s, fit {t_fit:.1f} s: {res.reason} in {res.steps} steps, "
             f"cost {res.initial_cost:.4e} -> {res.cost:.4e}"
         )
-        init_vals = np.asarray(res.problem.physical(res.problem.u0))
+        init_vals = values_of(init, res.parameter_names)
         print(f"{'parameter':<26}{'truth':>12}{'cold start':>12}{'fit':>12}{'SE':>11}{'(fit-truth)/SE':>16}")
         for n, tv, iv, v, s, zz in zip(res.parameter_names, true, init_vals, res.values, res.std_errors, z):
             print(f"{n:<26}{tv:12.4e}{iv:12.4e}{v:12.4e}{s:11.3e}{zz:16.2f}")

@@ -7,7 +7,10 @@
   built-in predictors.
 - Solver: `fit` / `solve` (optimistix's Levenberg–Marquardt, or `method="trust_region"`: scipy's TRF algorithm, in
   normal-equation form: $J^\top J$ and $J^\top r$ by forward mode at each accepted point, a chunk of experiments at
-  a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN.
+  a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN. The solvers as
+  components (`AbstractNormalSolver` with `init`/`step`/`terminate`; `LevenbergMarquardt`, `TrustRegion`), the
+  outcomes `RESULTS`, progress meters (`AbstractProgressMeter`, `TextProgressMeter`, `NoProgressMeter`) and
+  `FitError` (`throw=True`).
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 - Files: the submodule `fitting.files` writes files and folders completely or not at all (used by the command line
   and the experiments; not part of the calibration API above).
@@ -35,6 +38,10 @@ _EXPORTS = {
     "._problem": ("Problem", "estimate_noise_std", "free_mask", "parameter_paths"),
     "._results": ("FitResult", "error_metrics", "load_model", "load_summary"),
     "._solve": ("fit", "set_smoothing", "solve"),
+    "._solver": (
+        "RESULTS", "AbstractNormalSolver", "AbstractProgressMeter", "FitError", "LevenbergMarquardt", "Linearisation",
+        "NoProgressMeter", "Progress", "TextProgressMeter", "Trial", "TrustRegion", "Verdict",
+    ),
     "._staged": ("staged_ivan2009",),
 }
 _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
@@ -101,4 +108,18 @@ if TYPE_CHECKING:  # the same names for static analysis
         load_summary as load_summary,
     )
     from ._solve import fit as fit, set_smoothing as set_smoothing, solve as solve
+    from ._solver import (
+        RESULTS as RESULTS,
+        AbstractNormalSolver as AbstractNormalSolver,
+        AbstractProgressMeter as AbstractProgressMeter,
+        FitError as FitError,
+        LevenbergMarquardt as LevenbergMarquardt,
+        Linearisation as Linearisation,
+        NoProgressMeter as NoProgressMeter,
+        Progress as Progress,
+        TextProgressMeter as TextProgressMeter,
+        Trial as Trial,
+        TrustRegion as TrustRegion,
+        Verdict as Verdict,
+    )
     from ._staged import staged_ivan2009 as staged_ivan2009

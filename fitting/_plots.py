@@ -17,11 +17,11 @@ def plot_result(result, folder, max_experiments: int = 8) -> list[Path]:
     import matplotlib.pyplot as plt
 
     folder = Path(folder)
-    problem = result.problem
-    preds = problem.experiment_predictions(result.u)
+    exps = list(result.dataset)[:max_experiments]
+    preds = result.predict(exps, check_finite=False)
     written = []
-    for exp, pred in list(zip(problem.dataset, preds))[:max_experiments]:
-        chans = list(pred)
+    for exp, pred in zip(exps, preds):
+        chans = [c for c in pred if exp.has(c)]
         if not chans:
             continue
         safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in exp.name)

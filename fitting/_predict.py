@@ -129,7 +129,8 @@ def _run(predictor, model, data):
     return predictor(model, data)
 
 
-def predict(model, experiment, *, predictor: Predictor | None = None, history=()) -> dict[str, np.ndarray]:
+def predict(model, experiment, *, predictor: Predictor | None = None, history=(),
+            check_finite: bool = True) -> dict[str, np.ndarray]:
     r"""The predicted channels of `model` for one experiment, from rest or after the records of `history`.
 
     A model starts from rest (demagnetised hysteresis, relaxed creep and dynamics). A record that continues an earlier
@@ -145,9 +146,11 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
     - `predictor`: how the model makes the channels (default `default_predictor(model)`).
     - `history`: an `Experiment` or a sequence of them, run before `experiment`, with its sampling step
       (within 1e-6 relative) and input channels.
+    - `check_finite`: raise `PiezojaxValueError` naming the experiment and channel when a prediction is not finite
+      (default); `False` returns them as they are (e.g. to plot a failed fit).
 
-    **Returns:** `{channel: array of experiment.n samples}` (NumPy), for every output of the predictor. Non-finite
-    predictions raise `PiezojaxValueError` naming the experiment and channel. Any length works (no fit is involved).
+    **Returns:** `{channel: array of experiment.n samples}` (NumPy), for every output of the predictor. Any length
+    works (no fit is involved).
 
     ```python
     train, test = record.slice(None, 7.0), record.slice(7.0, None)
@@ -180,6 +183,6 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
     start = sum(e.n for e in history)
     preds = {c: np.asarray(out[c])[start:] for c in predictor.outputs}
     bad = [c for c, y in preds.items() if not np.all(np.isfinite(y))]
-    if bad:
+    if bad and check_finite:
         raise PiezojaxValueError(f"{experiment._label()}: the model's {bad[0]!r} is not finite")
     return preds

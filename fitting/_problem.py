@@ -1,6 +1,7 @@
 """A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 from typing import Any
 
 import equinox as eqx
@@ -14,7 +15,7 @@ import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 from piezojax._dtypes import common_float_dtype
 
-from ._predict import ExperimentArrays, Predictor, default_predictor
+from ._predict import ExperimentArrays, Predictor, default_predictor, predict
 
 
 def _is_reparam(x) -> bool:
@@ -271,7 +272,7 @@ def tangent_block(m: int, p: int, itemsize: int = 8) -> int:
     return max(1, min(p, _TANGENT_BUDGET // max(1, m * itemsize)))
 
 
-def _over_starts(fn, in_axes, n_starts):
+def over_starts(fn, in_axes, n_starts):
     """`fn` mapped over the starts (the arguments with `in_axes` 0): `eqx.filter_vmap`, or for a single start a plain
     call with the axis added back (a unit batch axis makes XLA:CPU copy arrays to move it: measured ~20 % of a
     linearisation)."""
@@ -286,18 +287,18 @@ def _over_starts(fn, in_axes, n_starts):
 
 
 @eqx.filter_jit
-def _linearise(core: ProblemCore, u):
+def linearise(core: ProblemCore, u):
     r"""`core.normal_equations` for each row of `u` (shape `(starts, p)`), under `vmap`: `(r, cost, g, H, finite)`
     with the cost $\tfrac12\|r\|^2$ and whether $g$ and $H$ are finite, per start. One compiled function for the
     solver, the problem's set-up and the results (the checks inside it, not as separate small computations)."""
-    r, g, h = _over_starts(core.normal_equations, (0,), u.shape[0])(u)
+    r, g, h = over_starts(core.normal_equations, (0,), u.shape[0])(u)
     finite = jnp.all(jnp.isfinite(g), axis=1) & jnp.all(jnp.isfinite(h), axis=(1, 2))
     return r, 0.5 * jnp.sum(r**2, axis=1), g, h, finite
 
 
 def _normal_equations(core: ProblemCore, u):
     # through the batched function with one start: the same compiled code as a single-start fit
-    r, _, g, h, _ = _linearise(core, u[None])
+    r, _, g, h, _ = linearise(core, u[None])
     return r[0], g[0], h[0]
 
 
@@ -309,11 +310,6 @@ def _residuals_and_jacobian(core: ProblemCore, u):
 @eqx.filter_jit
 def _residuals(core: ProblemCore, u):
     return core.residuals(u)
-
-
-@eqx.filter_jit
-def _predictions(core: ProblemCore, u):
-    return core.predictions(u)
 
 
 def estimate_noise_std(y: np.ndarray) -> float:
@@ -374,10 +370,9 @@ class Problem:
             dataset = Dataset(list(dataset))
         if len(dataset) == 0:
             raise PiezojaxValueError("`dataset` is empty")
-        self.dataset = dataset
-        self.predictor = default_predictor(model) if predictor is None else predictor
-        self.model = model
-        outputs, inputs = self.predictor.outputs, self.predictor.inputs
+        predictor = default_predictor(model) if predictor is None else predictor
+        self._set(dataset=dataset, predictor=predictor, model=model)
+        outputs, inputs = predictor.outputs, predictor.inputs
         for exp in dataset:
             missing = [c for c in inputs if not exp.has(c)]
             if missing:
@@ -401,13 +396,13 @@ class Problem:
                     raise PiezojaxValueError(f"`targets`: {c!r} is an input of the predictor, not a target")
                 if c not in available:
                     raise PiezojaxValueError(f"`targets`: no experiment in the dataset has the channel {c!r}")
-        self.targets = tuple(targets)
-        self.weights = self._weights(weights)
+        self._set(targets=tuple(targets))
+        self._set(weights=MappingProxyType(self._weights(weights)))
 
         if jacobian_chunk is not None and not (isinstance(jacobian_chunk, int) and jacobian_chunk >= 1):
             raise PiezojaxValueError(f"`jacobian_chunk` must be a positive int or None, got {jacobian_chunk!r}")
-        self.mask = free_mask(model, free)
-        free_part, frozen = eqx.partition(model, self.mask)
+        mask = free_mask(model, free)
+        free_part, frozen = eqx.partition(model, mask)
         leaves, treedef = jtu.tree_flatten(free_part)
         if not leaves:
             raise PiezojaxValueError("`free` selects no array parameter: nothing to fit")
@@ -424,26 +419,37 @@ class Problem:
         if scales.shape != theta0.shape or not bool(jnp.all(jnp.isfinite(scales) & (scales > 0))):
             raise PiezojaxValueError(f"`scales` must be {theta0.shape[0]} finite values > 0")
         groups = self._make_groups(dtype)
-        self.core = ProblemCore(tuple(groups), frozen, scales, unflatten, self.predictor,
-                                tuple(self.weights.items()), jacobian_chunk)
+        core = ProblemCore(tuple(groups), frozen, scales, unflatten, predictor, tuple(self.weights.items()),
+                           jacobian_chunk)
         if by_jacobian:
             # unit columns at the start (one Jacobian, compiled once and reused by the results' covariance)
-            _, _, jtj = _normal_equations(self.core, theta0 / scales)
+            _, _, jtj = _normal_equations(core, theta0 / scales)
             norms = np.sqrt(np.clip(np.diag(np.asarray(jtj)), 0.0, None))
             ok = np.isfinite(norms) & (norms > 0)
             new = np.where(ok, np.asarray(scales) / np.where(ok, norms, 1.0), np.asarray(scales))
             # powers of two, so that theta0 / s * s == theta0 exactly (the start is the user's model, bit for bit)
             new = np.exp2(np.round(np.log2(new)))
             scales = jnp.asarray(new, theta0.dtype)
-            self.core = eqx.tree_at(lambda c: c.scales, self.core, scales)
-        self.theta0 = theta0
-        self.u0 = theta0 / scales
-        self.num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in groups for m in g.masks.values()))
-        self.num_params = int(theta0.size)
-        if self.num_residuals <= self.num_params:
+            core = eqx.tree_at(lambda c: c.scales, core, scales)
+        num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in groups for m in g.masks.values()))
+        if num_residuals <= theta0.size:
             raise PiezojaxValueError(
-                f"{self.num_residuals} data points for {self.num_params} free parameters: the fit is underdetermined"
+                f"{num_residuals} data points for {theta0.size} free parameters: the fit is underdetermined"
             )
+        self._set(mask=mask, core=core, theta0=theta0, u0=theta0 / scales, num_residuals=num_residuals,
+                  num_params=int(theta0.size))
+        self._set(_ready=True)
+
+    def _set(self, **attributes):
+        for k, v in attributes.items():
+            object.__setattr__(self, k, v)
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"a fitting.Problem is immutable (cannot set {name!r}); build a new one, or use "
+                             "`with_frozen` for another frozen part")
+
+    def __delattr__(self, name):
+        raise AttributeError(f"a fitting.Problem is immutable (cannot delete {name!r})")
 
     # ------------------------------------------------------------------ setup
 
@@ -451,7 +457,7 @@ class Problem:
         out = {}
         for c in self.targets:
             ys = [np.asarray(exp.channels[c]) for exp in self.dataset if exp.has(c)]
-            if isinstance(weights, dict):
+            if isinstance(weights, Mapping):
                 if c not in weights:
                     raise PiezojaxValueError(f"`weights` has no entry for the target channel {c!r}")
                 w = float(weights[c])
@@ -516,7 +522,7 @@ class Problem:
         import copy
 
         new = copy.copy(self)
-        new.core = eqx.tree_at(lambda c: c.frozen, self.core, frozen)
+        new._set(core=eqx.tree_at(lambda c: c.frozen, self.core, frozen))
         return new
 
     @property
@@ -602,9 +608,11 @@ class Problem:
         return out
 
     def experiment_predictions(self, u: Float[Array, " p"]) -> list[dict[str, np.ndarray]]:
-        """Per experiment (dataset order), the predicted target channels at `u`, unpadded NumPy arrays."""
-        out: list[dict[str, np.ndarray] | None] = [None] * len(self.dataset)
-        for g, pred in zip(self.core.groups, _predictions(self.core, u)):
-            for j, (i, n) in enumerate(zip(g.index, g.lengths)):
-                out[i] = {c: np.asarray(pred[c][j, :n]) for c in g.targets}
-        return [o if o is not None else {} for o in out]
+        """Per experiment (dataset order), the predicted target channels it has at `u`, NumPy arrays of its length:
+        `fitting.predict` of the model at `u` (the one prediction path; the residuals compute the same, padded)."""
+        model = self.model_at(u)
+        out = []
+        for exp in self.dataset:
+            preds = predict(model, exp, predictor=self.predictor, check_finite=False)
+            out.append({c: preds[c] for c in self.targets if exp.has(c)})
+        return out

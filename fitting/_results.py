@@ -12,6 +12,8 @@ import numpy as np
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
+from ._stationarity import max_gradient_cosine
+
 
 def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float]:
     """RMSE (channel units), NRMSE and max |error| in % of the measured range."""
@@ -58,7 +60,10 @@ class FitResult:
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
       `reason`, `steps`, and `best` (the one reported); `None` otherwise.
-    - `problem`: the `Problem` (not saved).
+    - `u`: the scaled parameters the solver worked with (`Problem.u_of` of `params`), to compare with another
+      solver run on `Problem.residuals`.
+    - `predictor`, `targets`, `weights`, `dataset`: how the model was fitted (the predictor, the target channels,
+      their weights $w_c$) and to which records; `predict` uses the first two, the figures the last. (Not saved.)
     """
 
     model: Any
@@ -85,11 +90,14 @@ class FitResult:
     num_params: int
     metrics: dict[str, dict[str, dict[str, float]]]
     starts: list[dict] | None = None
-    problem: Any = dataclasses.field(repr=False, default=None)
     u: Any = dataclasses.field(repr=False, default=None)
+    predictor: Any = dataclasses.field(repr=False, default=None)
+    targets: tuple[str, ...] = ()
+    weights: dict[str, float] = dataclasses.field(default_factory=dict)
+    dataset: Any = dataclasses.field(repr=False, default=None)
 
     def summary(self) -> dict:
-        """A JSON-ready summary (everything but the models and the problem)."""
+        """A JSON-ready summary (everything but the models, the predictor and the data)."""
         return {
             "success": self.success,
             "reason": self.reason,
@@ -151,18 +159,19 @@ class FitResult:
                 )
         return "\n".join(lines)
 
-    def predict(self, dataset, history=()) -> list[dict[str, np.ndarray]]:
+    def predict(self, dataset, history=(), check_finite: bool = True) -> list[dict[str, np.ndarray]]:
         """The fitted model's predicted target channels for each experiment of `dataset` (a `Dataset`, a list of
-        experiments or one `Experiment`), each after the records of `history` (see `fitting.predict`: e.g. the
-        training record before a held-out record that continues it). Any record length works."""
+        experiments or one `Experiment`), each after the records of `history`, by `fitting.predict` (e.g. the
+        training record before a held-out record that continues it; `check_finite` as there). Any record length
+        works. `result.predict(result.dataset)` are the fitted records' predictions."""
         from ._data import Experiment
         from ._predict import predict
 
         exps = [dataset] if isinstance(dataset, Experiment) else list(dataset)
         out = []
         for e in exps:
-            preds = predict(self.model, e, predictor=self.problem.predictor, history=history)
-            out.append({c: y for c, y in preds.items() if c in self.problem.targets})
+            preds = predict(self.model, e, predictor=self.predictor, history=history, check_finite=check_finite)
+            out.append({c: y for c, y in preds.items() if c in self.targets})
         return out
 
     def save(self, path, overwrite: bool = False, figures: bool = True, extra: dict | None = None) -> Path:
@@ -217,101 +226,6 @@ def _at_bound(problem, u) -> np.ndarray:
     return np.asarray(flags, dtype=bool)
 
 
-KINK_FTOL = 1e-5
-"""A fit whose last restart past a kink (`solve`'s `kink_restarts`) lowered the cost by less than this fraction of
-it no longer decreases in practice: it is converged (`"converged_at_kink"`) whatever the probed slopes."""
-
-
-def kink_ftol(m: int, p: int) -> float:
-    r"""The relative cost decrease below which a restart past a kink counts as no decrease: `KINK_FTOL`, or, when
-    larger, $1/(m - p)$ — moving one parameter by one standard error changes the cost
-    $\tfrac12\sum r^2$ by $\hat\sigma^2/2 = \text{cost}/(m - p)$, so a smaller gain is below what the data can
-    resolve."""
-    return max(KINK_FTOL, 1.0 / max(m - p, 1))
-
-
-def descent_point(problem, u, gtol: float = 1e-2):
-    """A point of lower cost than `u` past a kink that stopped the steps: from the lowest-cost probe of
-    `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when `u` passes the
-    gtol test (or its linearisation is not finite: nothing to follow) or no probe lowers the cost."""
-    r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
-    if not np.all(np.isfinite(jtr)) or max_gradient_cosine(r, jtr, jtj) <= gtol:
-        return None  # stationary by MINPACK's gtol test
-    cost = 0.5 * float(np.sum(r**2))
-    if not np.isfinite(cost):
-        return None
-    slope, _, best = _probe_descent(problem, u, cost, r, jtr, jtj)
-    if best is None or slope >= -gtol:
-        return None  # no probe lowers the cost by more than the gtol test allows
-    # a line search along the best probed direction: double the step while the cost keeps falling
-    e, step, c = best
-    u = np.asarray(u, dtype=float)
-    limit = max(1.0, float(np.max(np.abs(u))))  # at most a unit change of the largest scaled parameter
-    while 2 * step <= limit:
-        c2 = _probe_cost(problem, u + 2 * step * e)
-        if not (np.isfinite(c2) and c2 < c):
-            break
-        step, c = 2 * step, c2
-    return u + step * e
-
-
-def _probe_cost(problem, u) -> float:
-    """The cost at `u`; `inf` where the predictions are not finite or the model's runtime checks fail."""
-    try:
-        rr = np.asarray(problem.residuals(jnp.asarray(u, dtype=problem.u0.dtype)))
-    except eqx.EquinoxRuntimeError:
-        return np.inf
-    c = 0.5 * float(np.sum(rr**2))
-    return c if np.isfinite(c) else np.inf
-
-
-def _probe_descent(problem, u, cost, r, jtr, jtj) -> tuple[float, bool, Any]:
-    r"""The subgradient form of the gtol test, for a fit that stops where the cost is not differentiable.
-
-    For directions $e$ (± each scaled parameter, the negative gradient, the Gauss–Newton step) and steps $h$ of
-    1e-7 and 1e-5 of max(1, |u|): the one-sided slope $(c(u + h e) - c(u))/h$, in the units of the gtol test,
-    $\|r\|\,\|J e\|$ (for a smooth cost it is the cosine between $r$ and $J e$, the quantity the gtol test bounds).
-    Returns the smallest (steepest descent, negative) of them, whether a step gave non-finite residuals, and the
-    probe of lowest cost if it is below `cost` (`(direction, step, cost)`; else `None`)."""
-    u = np.asarray(u, dtype=float)
-    jtj = np.asarray(jtj, dtype=float)
-    p = u.size
-    directions = [np.eye(p)[i] * sgn for i in range(p) for sgn in (1.0, -1.0)]
-    g = -np.asarray(jtr, dtype=float)
-    if np.any(g):
-        directions.append(g / np.max(np.abs(g)))
-    gn = np.linalg.lstsq(jtj, g, rcond=1e-12)[0]
-    if np.all(np.isfinite(gn)) and np.any(gn):
-        directions.append(gn / np.max(np.abs(gn)))
-    size = max(1.0, float(np.max(np.abs(u)))) if p else 1.0
-    rnorm = float(np.sqrt(np.sum(np.asarray(r, dtype=float) ** 2)))
-    slope, nonfinite, best, best_cost = np.inf, False, None, cost
-    for h in (1e-7, 1e-5):
-        for e in directions:
-            scale = rnorm * np.sqrt(max(float(e @ jtj @ e), 0.0))
-            if not scale > 0:
-                continue  # a direction the residuals do not depend on
-            c = _probe_cost(problem, u + h * size * e)
-            if np.isfinite(c):
-                slope = min(slope, (c - cost) / (h * size) / scale)
-                if c < best_cost:
-                    best, best_cost = (e, h * size, c), c
-            else:
-                nonfinite = True
-    return slope, nonfinite, best
-
-
-def max_gradient_cosine(r, jtr, jtj) -> float:
-    """MINPACK's gtol quantity: the largest |cos| between the residual and a Jacobian column (0 for a zero residual
-    or no parameters)."""
-    r, jtr, jtj = (np.asarray(x) for x in (r, jtr, jtj))
-    col_norms = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
-    rnorm = np.sqrt(np.sum(r**2))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cosines = np.abs(jtr) / (col_norms * rnorm)
-    return float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
-
-
 def _std_error_status(s) -> str:
     """How to read a standard error in `result.json`, where JSON can hold neither inf nor NaN (both are `null`):
     `"finite"`, `"infinite"` (the data do not determine the parameter) or `"not computed"` (no finite Jacobian)."""
@@ -343,12 +257,12 @@ def load_summary(path) -> dict:
     return json.loads(f.read_text())
 
 
-def summarise(
-    problem, u, *, success, reason, code, steps, accepted, history, seconds, levels, gtol=1e-2, history_steps=None,
-    kink_gain=None,
-) -> FitResult:
-    """Build a `FitResult` at the scaled parameters `u`: metrics, covariance and standard errors."""
-    r, jtr, jtj = (np.asarray(x) for x in problem.normal_equations(u))
+def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, levels, history_steps=None,
+              starts=None) -> FitResult:
+    r"""The `FitResult` of `problem` at the scaled parameters `u` with the solver's `verdict` (`fitting.Verdict`):
+    metrics, covariance and standard errors, all from `lin`, the linearisation at `u` (`fitting.Linearisation`, as
+    the solver formed it): no further simulation or Jacobian."""
+    r, jtr, jtj = (np.asarray(x) for x in (lin.r, lin.g, lin.h))
     m, p = problem.num_residuals, problem.num_params
     cost = 0.5 * float(np.sum(r**2))
     s2 = 2 * cost / max(m - p, 1)
@@ -383,39 +297,6 @@ def summarise(
     if not finite:
         se, corr = np.full_like(se, np.nan), np.full_like(corr, np.nan)
         status[:] = "not computed"
-    # first-order optimality (MINPACK's gtol test): the largest cosine between the residual and a Jacobian column
-    gradient_cosine = max_gradient_cosine(r, jtr, jtj)
-    if success and gradient_cosine > gtol:
-        initial = float(history[0]) if history else cost
-        if cost <= (1e4 * np.finfo(float).eps) ** 2 * initial:
-            # the residuals are rounding noise: their direction, hence the cosine, means nothing
-            code = "converged_zero_residual"
-            reason = (f"converged to a zero residual (cost {cost:.3e}, {cost / initial:.1e} of the start's: the "
-                      f"gradient test max |cos(r, J_i)| = {gradient_cosine:.2e} is rounding noise there)")
-        else:
-            slope, nonfinite, _ = _probe_descent(problem, u, cost, r, jtr, jtj)
-            if slope >= -gtol and not nonfinite:
-                # the one-sided slopes of the cost along every probed direction pass the gtol test: a minimum
-                # where the cost is not differentiable (the exact operators are piecewise smooth), where the
-                # gradient (one side's derivative) cannot
-                code = "converged_at_kink"
-                reason = (f"converged at a kink of the cost (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
-                          f"{gtol:g} from one side's derivative, but the cost rises along ± each parameter, the "
-                          f"gradient and the Gauss–Newton direction: steepest one-sided slope {slope:+.1e} in gtol's "
-                          "units; the exact, piecewise smooth model is not differentiable there)")
-            elif kink_gain is not None and kink_gain < kink_ftol(m, p) and not nonfinite:
-                code = "converged_at_kink"
-                reason = (f"converged: the cost no longer decreases (the last restart past a kink lowered it by "
-                          f"{kink_gain:.1e} of it, below {kink_ftol(m, p):.1e}: less than moving one parameter by "
-                          f"one standard error changes it), although it still falls along a probed "
-                          f"direction at a one-sided slope of {slope:+.1e} in gtol's units (gtol = {gtol:g}): the "
-                          "kinks of the exact, piecewise smooth model stop every step within a short distance")
-            else:
-                success, code = False, "not_stationary"
-                why = (f"the cost falls along a probed direction (slope {slope:+.1e} in gtol's units)"
-                       if slope < -gtol else "the model is not finite next to this point")
-                reason = (f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > "
-                          f"gtol = {gtol:g}; {why}): the trust region shrank without a decrease")
 
     # the errors are the residuals unweighted: no further simulation
     metrics = {}
@@ -425,9 +306,9 @@ def summarise(
     return FitResult(
         model=pj.unwrap(params),
         params=params,
-        success=bool(success),
-        reason=reason,
-        code=code,
+        success=verdict.success,
+        reason=verdict.reason,
+        code=verdict.code,
         steps=int(steps),
         accepted_steps=int(accepted),
         initial_cost=float(history[0]) if history else cost,
@@ -442,10 +323,14 @@ def summarise(
         std_error_status=[str(x) for x in status],
         correlation=corr,
         condition=condition,
-        gradient_cosine=gradient_cosine,
+        gradient_cosine=max_gradient_cosine(r, jtr, jtj),
         num_residuals=m,
         num_params=p,
         metrics=metrics,
-        problem=problem,
+        starts=starts,
         u=jnp.asarray(u),
+        predictor=problem.predictor,
+        targets=tuple(problem.targets),
+        weights=dict(problem.weights),
+        dataset=problem.dataset,
     )

@@ -558,7 +558,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     fit left without weight or above the largest voltage); the lower cost is kept. Returns the result kept and, for
     `result.json`, what was done (`None` when nothing was dead)."""
     import fitting
-    from fitting._solve import _HARD
+
+    from ._solver import HARD_FAILURES
 
     again = config.reseeded(result.model, dataset, free)
     if again is None:
@@ -567,7 +568,7 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     _info(f"{moved} dead hysteresis element(s) re-seeded where the live ones leave the widest gaps; fitting again",
           quiet)
     second = fitting.fit(model, dataset, **fit_args)
-    kept = second.code == "interrupted" or (second.code not in _HARD and second.cost < result.cost)
+    kept = second.code == "interrupted" or (second.code not in HARD_FAILURES and second.cost < result.cost)
     info = {"elements": moved, "cost_before": float(result.cost), "cost_after": float(second.cost),
             "steps": int(second.steps), "kept": bool(kept)}
     _info(f"re-seeded fit: cost {second.cost:.6e} against {result.cost:.6e}; "
@@ -648,7 +649,7 @@ def _cmd_fit(args) -> int:
                 "experiments": list(dataset.names),
                 "targets": list(targets),
                 "free": free,
-                "weights": result.problem.weights,
+                "weights": result.weights,
                 "outputs": list(config.outputs),
                 "data_settings": settings,
                 "window": args.window,

@@ -18,7 +18,7 @@ from ._benches.ivan import (
     IvanBench as IvanBench,
     periodic_steps as periodic_steps,
 )
-from ._checks import PiezojaxValueError as PiezojaxValueError
+from ._checks import PiezojaxError as PiezojaxError, PiezojaxValueError as PiezojaxValueError
 from ._circuits.base import AbstractCircuit as AbstractCircuit
 from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegratorCircuit
 from ._circuits.smart_stack import SmartStackCircuit as SmartStackCircuit

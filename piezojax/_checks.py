@@ -17,7 +17,11 @@ from jaxtyping import Array, ArrayLike, PyTree
 _X = TypeVar("_X")
 
 
-class PiezojaxValueError(ValueError):
+class PiezojaxError(Exception):
+    """The base of every error piezojax and `fitting` raise themselves (`except pj.PiezojaxError` catches them all)."""
+
+
+class PiezojaxValueError(PiezojaxError, ValueError):
     """Raised when an argument to a piezojax function has the wrong shape, type or value."""
 
 

@@ -96,14 +96,18 @@ def test_minimum_at_a_kink_is_converged_and_a_descent_point_is_not():
     assert abs(past.values[1]) < 1e-6
     assert past.cost < stuck.cost
     # the same verdict machinery at a point that is not a minimum: a descent direction exists
-    from fitting._results import summarise
+    from fitting._stationarity import stationarity_verdict
 
-    problem = result.problem
+    problem = fitting.Problem(result.params, _dataset(y), predictor=_predictor(), free=["k"],
+                              weights={"displacement": 1.0})
     u = problem.u_of(eqx.tree_at(lambda m: m.k, result.params, jnp.asarray(0.2)))
-    bad = summarise(problem, u, success=True, reason="r", code="successful", steps=1, accepted=1, history=[1.0],
-                    seconds=0.0, levels=[])
+    r, g, h = problem.normal_equations(u)
+    lin = fitting.Linearisation(r, 0.5 * jnp.sum(r**2), g, h)
+    bad = stationarity_verdict(problem, u, lin, fitting.Verdict("successful", "r"), initial_cost=1.0)
     assert not bad.success and bad.code == "not_stationary", bad.reason
     assert "the cost falls along a probed direction" in bad.reason
+    # a verdict that is not a success is not re-examined
+    assert stationarity_verdict(problem, u, lin, fitting.Verdict("stalled", "s"), initial_cost=1.0).code == "stalled"
 
 
 def test_zero_residual_fit_is_converged():

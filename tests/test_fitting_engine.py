@@ -311,10 +311,13 @@ def test_fit_recovers_and_reports(data):
     assert np.allclose(np.diag(res.correlation), 1.0)
     # predictions: the fitted channels of every record, equal to the fit's own; a 10-sample record works too, and
     # after its first part as history a record's end is the whole record's end
-    preds = res.predict(data)
-    fit_preds = res.problem.experiment_predictions(res.u)
-    for p, q in zip(preds, fit_preds):
-        np.testing.assert_allclose(p["displacement"], q["displacement"], rtol=1e-10, atol=1e-14)
+    # (the result holds how it was fitted, not the problem; the fit's padded, batched residuals are the same numbers)
+    assert not hasattr(res, "problem") and res.targets == ("displacement",) and res.dataset is data
+    preds = res.predict(res.dataset)
+    again = fitting.Problem(res.params, data, free=["hysteresis.w0"], weights=res.weights)
+    for p, e, exp in zip(preds, again.experiment_errors(again.residuals(again.u0)), data):
+        y = exp.channels["displacement"]
+        np.testing.assert_allclose(p["displacement"], y + e["displacement"], rtol=0, atol=1e-12 * np.abs(y).max())
     e = data[0]
     head, tail = e.slice(None, e.t[10], name="head"), e.slice(e.t[10], e.t[19] + 0.5 * e.dt, name="tail")
     (y,) = res.predict(tail, history=head)
@@ -343,8 +346,12 @@ def test_failed_fits_return_reasons_not_nan(data):
     more = fitting.fit(start, data, predictor=pred, free=["hysteresis.w0", "hysteresis.weights"], progress=False)
     assert not more.success and more.code == "not_stationary" and "the cost falls along" in more.reason
     assert more.cost <= res.cost and np.all(np.isfinite(more.values))
-    with pytest.raises(RuntimeError, match="fit failed: (no decrease|stopped where)"):
+    with pytest.raises(fitting.FitError, match="fit failed: (no decrease|stopped where)") as raised:
         fitting.fit(start, data, predictor=pred, free=["hysteresis.w0"], progress=False, throw=True)
+    # the project's error type, holding the failed result (its last accepted, finite parameters)
+    assert isinstance(raised.value, pj.PiezojaxError) and isinstance(raised.value, RuntimeError)
+    failed = raised.value.result
+    assert raised.value.code == failed.code and not failed.success and np.all(np.isfinite(failed.values))
 
     always_nan = fitting.Predictor(lambda m, d: {"displacement": d.v_in * jnp.nan}, ("displacement",))
     res = fitting.fit(start, data, predictor=always_nan, free=["hysteresis.w0"], progress=False)

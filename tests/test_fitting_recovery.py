@@ -177,7 +177,7 @@ def test_joint_fit_recovers_every_parameter_within_3_se(first):
     _, res = first
     assert res.success, res.reason
     assert res.parameter_names == cold_start_free_names()
-    true = fr.truth_vector(res.problem)
+    true = fr.truth_vector(res.parameter_names)
     assert np.all(np.isfinite(res.std_errors)) and np.all(res.std_errors > 0)
     z = (res.values - true) / res.std_errors
     assert np.all(np.abs(z) < 3), dict(zip(res.parameter_names, np.round(z, 2)))
@@ -208,7 +208,7 @@ def test_standard_errors_match_the_spread_reduced(first, clean):
     (estimate - truth)/SE of both fits (38 values) must have RMS within [1/1.5, 1.5] (the full per-parameter
     check over >= 20 realisations is `python -m experiments.fit_recovery`)."""
     init, res = first
-    true = fr.truth_vector(res.problem)
+    true = fr.truth_vector(res.parameter_names)
     zs = [(res.values - true) / res.std_errors]
     for seed in (1,):
         r = fr.fit_once(init, fr.make_dataset(seed, clean), rtol=fr.RTOL, atol=fr.ATOL)

@@ -1,0 +1,617 @@
+r"""The least-squares solvers, as optimistix splits them: a small abstract solver (`init` / `step` / `terminate`),
+each concrete solver a *descent* (the step from a linearisation) and a *search* (whether to take it, and the next
+step size or radius); a results enumeration with messages; a pluggable progress meter; and `iterate`, the loop that
+runs a solver from several starts at once.
+
+Everything works in normal-equation form: a linearisation at an accepted point is $(r, \tfrac12\|r\|^2, g, H)$ with
+$g = J^\top r$ and $H = J^\top J$ (`Problem.normal_equations`: forward mode, a chunk of experiments at a time, the
+$m \times p$ Jacobian never kept), and a rejected trial costs one simulation, not a Jacobian.
+
+The multi-start bookkeeping above one level of continuation (levels of smoothing, restarts past kinks, the choice
+of the best start, the report) is `fitting.solve`'s.
+"""
+
+import abc
+import dataclasses
+import sys
+import time
+from collections.abc import Callable
+from typing import Any, ClassVar, NamedTuple, TextIO
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float
+
+from piezojax._checks import PiezojaxError
+
+from ._problem import ProblemCore, linearise, over_starts
+
+# ---------------------------------------------------------------------------------------------------- results
+
+
+class RESULTS(eqx.Enumeration):
+    """How a fit ended (an `eqx.Enumeration`, as `optx.RESULTS`): `RESULTS[item]` is the message. `FitResult.code`
+    is the item's name, `FitResult.reason` the message with the numbers of that fit."""
+
+    successful = "converged"
+    converged_at_kink = "converged at a kink of the piecewise smooth cost"
+    converged_zero_residual = "converged to a zero residual"
+    max_steps_reached = "the maximum number of steps was reached before convergence"
+    stalled = "no decrease of the cost in many consecutive trial steps (stalled or diverging)"
+    not_stationary = "stopped where the cost is not stationary"
+    interrupted = "interrupted by the user (Ctrl-C)"
+    nonfinite_initial = "the model's predictions or Jacobian are not finite at the initial parameters"
+    nonfinite = "the Jacobian is not finite at an accepted point"
+    linear_solve_failed = "the linear solve of a damped step failed"
+
+
+SUCCESSES = ("successful", "converged_at_kink", "converged_zero_residual")
+"""The codes of a converged fit."""
+
+HARD_FAILURES = ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed")
+"""The codes after which a start is not continued (to the next smoothing level, or past a kink)."""
+
+
+def result_code(item) -> str:
+    """The name of a `RESULTS` item (`"successful"`, ...); for a batch of items, the list of names."""
+    names = {int(v._value): k for k, v in RESULTS._name_to_item.items()}
+    values = np.asarray(item._value)
+    return names[int(values)] if values.ndim == 0 else [names[int(v)] for v in values]
+
+
+def result_message(code: str) -> str:
+    """The message of the `RESULTS` item named `code`."""
+    return RESULTS[getattr(RESULTS, code)]
+
+
+class Verdict(NamedTuple):
+    """A start's verdict: its `RESULTS` name and the reason, with the numbers of that fit."""
+
+    code: str
+    reason: str
+
+    @property
+    def success(self) -> bool:
+        return self.code in SUCCESSES
+
+    @property
+    def hard(self) -> bool:
+        return self.code in HARD_FAILURES
+
+
+class FitError(PiezojaxError, RuntimeError):
+    """A fit run with `throw=True` failed: `str(error)` is the reason, `error.result` the failed `FitResult` (the
+    last accepted parameters, never NaN), `error.code` its `RESULTS` name."""
+
+    def __init__(self, result):
+        super().__init__(f"fit failed: {result.reason}")
+        self.result = result
+        self.code = result.code
+
+
+# ---------------------------------------------------------------------------------------------------- progress
+
+
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """What a progress meter is told after each step of `iterate`."""
+
+    label: str  # e.g. "[smoothing 0.02] " (empty for a plain fit)
+    step: int
+    best_cost: float  # the lowest accepted cost over the starts
+    accepted: int  # accepted steps of the first start
+    running: int  # starts not yet finished
+    starts: int
+    seconds: float  # since the level began
+
+
+class AbstractProgressMeter(eqx.Module):
+    """Reports a fit's progress (as diffrax's progress meters): `init` when a level of the fit begins, `step` after
+    every step, `close` at its end (also after Ctrl-C). Subclass it to log elsewhere (a notebook widget, a file)."""
+
+    @abc.abstractmethod
+    def init(self, label: str, starts: int) -> Any:
+        """The meter's state at the start of a level."""
+
+    @abc.abstractmethod
+    def step(self, state: Any, progress: Progress) -> Any:
+        """Report `progress`; returns the new state."""
+
+    @abc.abstractmethod
+    def close(self, state: Any) -> None:
+        """The level ended."""
+
+
+class NoProgressMeter(AbstractProgressMeter):
+    """Reports nothing (`solve(..., progress=False)`)."""
+
+    def init(self, label, starts):
+        return None
+
+    def step(self, state, progress):
+        return state
+
+    def close(self, state):
+        return None
+
+
+class TextProgressMeter(AbstractProgressMeter):
+    """One line, rewritten in place after every step: step, (best) cost, accepted steps or running starts, elapsed
+    time; on `stream` (default: `sys.stderr` at the time of the fit)."""
+
+    stream: TextIO | None = None
+
+    def _out(self):
+        return sys.stderr if self.stream is None else self.stream
+
+    def init(self, label, starts):
+        return None
+
+    def step(self, state, progress):
+        p = progress
+        what = (f"cost {p.best_cost:.6e}  accepted {p.accepted:4d}" if p.starts == 1 else
+                f"best cost {p.best_cost:.6e}  running {p.running}/{p.starts}")
+        print(f"\r  {p.label}step {p.step:4d}  {what}  {p.seconds:7.1f} s", end="", file=self._out(), flush=True)
+        return state
+
+    def close(self, state):
+        print(file=self._out(), flush=True)
+
+
+def as_progress_meter(progress) -> AbstractProgressMeter:
+    """`True` → `TextProgressMeter()`, `False`/`None` → `NoProgressMeter()`, a meter → itself."""
+    if isinstance(progress, AbstractProgressMeter):
+        return progress
+    if progress is None or isinstance(progress, bool | np.bool_):
+        return TextProgressMeter() if progress else NoProgressMeter()
+    raise PiezojaxError(f"`progress` must be True, False or a fitting.AbstractProgressMeter, got {progress!r}")
+
+
+# ---------------------------------------------------------------------------------------------------- solvers
+
+
+class Linearisation(eqx.Module):
+    r"""The model linearised at a point: weighted residuals `r`, `cost` $= \tfrac12\|r\|^2$, $g = J^\top r$,
+    $H = J^\top J$ (one start; `iterate` stacks starts on a leading axis)."""
+
+    r: Float[Array, " m"]
+    cost: Float[Array, ""]
+    g: Float[Array, " p"]
+    h: Float[Array, "p p"]
+
+
+class Trial(eqx.Module):
+    """A solver's trial step: the step and the trial point `y` (the point plus the step), its residuals and cost,
+    whether the search accepts it, and whether the linear algebra of the step succeeded."""
+
+    step: Float[Array, " p"]
+    y: Float[Array, " p"]
+    r: Float[Array, " m"]
+    cost: Float[Array, ""]
+    accept: Bool[Array, ""]
+    ok: Bool[Array, ""]
+
+
+class AbstractNormalSolver(eqx.Module):
+    r"""A least-squares solver on normal equations, in optimistix's split (`optx.AbstractLeastSquaresSolver`,
+    stepped from the outside so that each start of a batch keeps its own state):
+
+    - `init(y, lin)`: the solver's state at the start `y` with its linearisation `lin`;
+    - `step(residuals, y, lin, state, active)`: a trial step from the linearisation and the residuals at the trial
+      point (`residuals(y)`: the weighted residual vector); a start that is not `active` stays where it is;
+    - `terminate(y, lin, trial, state)`: whether the trial met the solver's convergence test;
+    - `relinearise(state, lin)`: the state after the model is linearised again at an accepted point;
+    - `refuse(state)`: the state after the model refused the trial point (a runtime check), as after a failed trial.
+
+    All five are pure JAX, for one start (`iterate` maps them over the starts).
+    """
+
+    rtol: eqx.AbstractVar[Any]
+    atol: eqx.AbstractVar[Any]
+    ftol: eqx.AbstractVar[Any]
+    converged_reason: eqx.AbstractClassVar[str]
+
+    @abc.abstractmethod
+    def init(self, y: Array, lin: Linearisation) -> Any: ...
+
+    @abc.abstractmethod
+    def step(self, residuals: Callable[[Array], Array], y: Array, lin: Linearisation, state: Any,
+             active: Bool[Array, ""]) -> tuple[Trial, Any]: ...
+
+    @abc.abstractmethod
+    def terminate(self, y: Array, lin: Linearisation, trial: Trial, state: Any) -> Bool[Array, ""]: ...
+
+    @abc.abstractmethod
+    def relinearise(self, state: Any, lin: Linearisation) -> Any: ...
+
+    @abc.abstractmethod
+    def refuse(self, state: Any) -> Any: ...
+
+
+def _tolerance(x):
+    return jnp.asarray(x, float)
+
+
+class LevenbergMarquardt(AbstractNormalSolver):
+    r"""`optx.LevenbergMarquardt`'s algorithm in normal-equation form, from its own optimistix parts: the descent
+    `optx.DampedNewtonDescent` solves $(H + \lambda I)\delta = -g$ (`linear_solver`, Cholesky by default) and the
+    search `optx.ClassicalTrustRegion` updates the step size $1/\lambda$ from the ratio of actual to predicted
+    decrease; optimistix's Cauchy test (`rtol`, `atol` on the step and the change of the residuals) ends it. The
+    difference that matters for long records: the model is linearised only at accepted points.
+
+    ```python
+    fitting.solve(problem, method=fitting.LevenbergMarquardt(rtol=1e-10, atol=1e-12))
+    ```
+    """
+
+    rtol: Array = eqx.field(converter=_tolerance, default=1e-8)
+    atol: Array = eqx.field(converter=_tolerance, default=1e-10)
+    ftol: Array = eqx.field(converter=_tolerance, default=1e-8)
+    descent: optx.DampedNewtonDescent = optx.DampedNewtonDescent(linear_solver=lx.Cholesky())
+    search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
+    converged_reason: ClassVar[str] = "converged (relative change below rtol/atol)"
+
+    def init(self, y, lin):
+        # the state is (step size, search state); the first step size is optimistix's (1, i.e. lambda = 1)
+        return jnp.ones((), y.dtype), self.search.init(y, None)
+
+    def _f_info(self, lin):
+        return optx.FunctionInfo.EvalGradHessian(
+            lin.cost, lin.g, lx.MatrixLinearOperator(lin.h, lx.positive_semidefinite_tag))
+
+    def step(self, residuals, y, lin, state, active):
+        step_size, search_state = state
+        f_info = self._f_info(lin)
+        descent_state = self.descent.query(y, f_info, self.descent.init(y, f_info))
+        delta, result = self.descent.step(step_size, descent_state)
+        # a finished start (e.g. non-finite at its start) stays where it is: its model is never evaluated elsewhere
+        delta = jnp.where(active, delta, 0.0)
+        y_eval = y + delta
+        r_eval = residuals(y_eval)
+        cost_eval = 0.5 * jnp.sum(r_eval**2)
+        step_size, accept, _, search_state = self.search.step(
+            jnp.array(False), y, y_eval, f_info, optx.FunctionInfo.Eval(cost_eval), search_state)
+        accept = accept & jnp.isfinite(cost_eval)
+        trial = Trial(delta, y_eval, r_eval, cost_eval, accept, result == optx.RESULTS.successful)
+        return trial, (step_size, search_state)
+
+    def terminate(self, y, lin, trial, state):
+        # optimistix's Cauchy test (`cauchy_termination`, max norm) on the step and the change of the residuals
+        y_small = jnp.max(jnp.abs(trial.step) / (self.atol + self.rtol * jnp.abs(trial.y))) < 1
+        f_small = jnp.max(jnp.abs(trial.r - lin.r) / (self.atol + self.rtol * jnp.abs(trial.r))) < 1
+        return trial.accept & y_small & f_small
+
+    def relinearise(self, state, lin):
+        return state
+
+    def refuse(self, state):
+        # as after a rejected trial: `ClassicalTrustRegion`'s low_constant (the state holds step sizes)
+        return jtu.tree_map(lambda x: self.search.low_constant * x, state)
+
+
+def _column_norms(h):
+    r"""$\|J_{:,j}\|$ from $H = J^\top J$; zero columns count as 1 (scipy's `x_scale="jac"`)."""
+    norms = jnp.sqrt(jnp.clip(jnp.diagonal(h, axis1=-2, axis2=-1), 0.0, None))
+    return jnp.where(norms > 0, norms, 1.0)
+
+
+class TrustRegionDescent(eqx.Module):
+    r"""The descent of scipy's TRF for an unbounded problem, in normal-equation form: in the variables scaled by
+    $d = 1/$`scale_inv` (the running maximum of the Jacobian's column norms), the Gauss–Newton step if it lies within
+    the radius $\Delta$, else $-(\hat H + \alpha I)^{-1}\hat g$ with $\|p\| = \Delta$ (scipy's
+    `solve_lsq_trust_region`, from the eigen-decomposition of the $p \times p$ $\hat H = D H D$ instead of the SVD
+    of $\hat J$; Moré's Newton iteration on $\alpha$, relative tolerance 1 %)."""
+
+    max_iter: int = eqx.field(static=True, default=10)
+    rtol: float = eqx.field(static=True, default=0.01)
+
+    def subproblem(self, lam, vecs, suf, delta, alpha, m):
+        r"""From $s_i^2 = $ `lam` (descending), $V$ = `vecs`, $V^\top\hat g$ = `suf`: `(p, alpha)`."""
+        s = jnp.sqrt(lam)
+        full_rank = s[-1] > jnp.finfo(lam.dtype).eps * m * s[0]
+        lam_safe = jnp.where(lam > 0, lam, 1.0)
+        p_gn = -vecs @ (suf / lam_safe)
+        take_gn = full_rank & (jnp.linalg.norm(p_gn) <= delta)
+
+        def phi_and_derivative(a):
+            denom = lam + a
+            p_norm = jnp.linalg.norm(suf / denom)
+            return p_norm - delta, -jnp.sum(suf**2 / denom**3) / p_norm
+
+        upper = jnp.linalg.norm(suf) / delta
+        phi0, dphi0 = phi_and_derivative(jnp.where(full_rank, 0.0, 1.0))
+        lower = jnp.where(full_rank, -phi0 / dphi0, 0.0)
+        alpha = jnp.where(~full_rank & (alpha == 0), jnp.maximum(0.001 * upper, jnp.sqrt(lower * upper)), alpha)
+
+        def body(_, carry):
+            a, lo, hi, done = carry
+            a_reset = jnp.where((a < lo) | (a > hi), jnp.maximum(0.001 * hi, jnp.sqrt(lo * hi)), a)
+            phi, dphi = phi_and_derivative(a_reset)
+            hi_new = jnp.where(phi < 0, a_reset, hi)
+            ratio = phi / dphi
+            lo_new = jnp.maximum(lo, a_reset - ratio)
+            a_new = a_reset - (phi + delta) * ratio / delta
+            keep = lambda new, old: jnp.where(done, old, new)  # noqa: E731
+            return keep(a_new, a), keep(lo_new, lo), keep(hi_new, hi), done | (jnp.abs(phi) < self.rtol * delta)
+
+        alpha, *_ = jax.lax.fori_loop(0, self.max_iter, body, (alpha, lower, upper, jnp.array(False)))
+        p = -vecs @ (suf / (lam + alpha))
+        p = p * (delta / jnp.linalg.norm(p))
+        return jnp.where(take_gn, p_gn, p), jnp.where(take_gn, 0.0, alpha)
+
+    def step(self, radius, scale_inv, alpha, lin, m):
+        r"""`(step, scaled step, alpha, predicted decrease)` from the linearisation `lin` ($m$ residuals)."""
+        d = 1.0 / scale_inv
+        hh = lin.h * d[:, None] * d[None, :]
+        gh = lin.g * d
+        lam, vecs = jnp.linalg.eigh(hh)
+        lam, vecs = jnp.clip(lam[::-1], 0.0, None), vecs[:, ::-1]
+        step_h, alpha = self.subproblem(lam, vecs, vecs.T @ gh, radius, alpha, m)
+        predicted = -(0.5 * step_h @ hh @ step_h + gh @ step_h)
+        return step_h, alpha, predicted, d
+
+
+class RadiusSearch(eqx.Module):
+    r"""The search of scipy's TRF: the ratio $\rho$ of actual to predicted decrease; the radius shrunk to
+    `shrink` × the (scaled) step below $\rho$ = `low`, doubled above `high` when the step reached the radius; any
+    decrease accepted."""
+
+    low: float = eqx.field(static=True, default=0.25)
+    high: float = eqx.field(static=True, default=0.75)
+    shrink: float = eqx.field(static=True, default=0.25)
+
+    def ratio(self, predicted, actual):
+        return jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0),
+                         jnp.where((predicted == 0) & (actual == 0), 1.0, 0.0))
+
+    def step(self, radius, ratio, step_norm, finite):
+        """The next radius."""
+        new = jnp.where(ratio < self.low, self.shrink * step_norm,
+                        jnp.where((ratio > self.high) & (step_norm > 0.95 * radius), 2.0 * radius, radius))
+        return jnp.where(finite, new, self.shrink * step_norm)
+
+
+class _TrustRegionState(eqx.Module):
+    scale_inv: Array  # running maximum of the Jacobian's column norms
+    radius: Array
+    alpha: Array  # the last Levenberg–Marquardt parameter of the subproblem (its next starting guess)
+    ratio: Array  # actual / predicted decrease of the last trial
+    actual: Array  # actual decrease of the last trial
+
+
+class TrustRegion(AbstractNormalSolver):
+    r"""The algorithm of `scipy.optimize.least_squares(method="trf", x_scale="jac")` for an unbounded problem, from
+    the same linearisations as `LevenbergMarquardt`: the descent `TrustRegionDescent` (the trust-region step in the
+    variables scaled by the running maximum of the Jacobian's column norms), the search `RadiusSearch` (the radius
+    from the ratio of actual to predicted decrease), and scipy's tests: relative cost decrease below `ftol` with a
+    ratio above 0.25, or a step below `rtol` relative (scipy's `xtol`). `atol` is not used."""
+
+    rtol: Array = eqx.field(converter=_tolerance, default=1e-8)
+    atol: Array = eqx.field(converter=_tolerance, default=1e-10)
+    ftol: Array = eqx.field(converter=_tolerance, default=1e-8)
+    descent: TrustRegionDescent = TrustRegionDescent()
+    search: RadiusSearch = RadiusSearch()
+    converged_reason: ClassVar[str] = (
+        "converged (scipy's ftol/xtol test: relative cost decrease below ftol or step below rtol)")
+
+    def init(self, y, lin):
+        scale_inv = _column_norms(lin.h)
+        radius = jnp.linalg.norm(y * scale_inv)
+        zero = jnp.zeros((), y.dtype)
+        return _TrustRegionState(scale_inv, jnp.where(radius > 0, radius, 1.0), zero, zero, zero)
+
+    def step(self, residuals, y, lin, state, active):
+        step_h, alpha, predicted, d = self.descent.step(state.radius, state.scale_inv, state.alpha, lin,
+                                                        lin.r.shape[0])
+        step_h = jnp.where(active, step_h, 0.0)
+        step = d * step_h
+        y_eval = y + step
+        r_eval = residuals(y_eval)
+        cost_eval = 0.5 * jnp.sum(r_eval**2)
+        finite = jnp.isfinite(cost_eval)
+        actual = lin.cost - cost_eval
+        ratio = self.search.ratio(predicted, actual)
+        radius = self.search.step(state.radius, ratio, jnp.linalg.norm(step_h), finite)
+        radius = jnp.where(active, radius, state.radius)
+        alpha = alpha * state.radius / radius
+        trial = Trial(step, y_eval, r_eval, cost_eval, finite & (actual > 0), jnp.all(jnp.isfinite(step)))
+        return trial, _TrustRegionState(state.scale_inv, radius, alpha, ratio, actual)
+
+    def terminate(self, y, lin, trial, state):
+        ftol_ok = (state.actual < self.ftol * lin.cost) & (state.ratio > self.search.low)
+        xtol_ok = jnp.linalg.norm(trial.step) < self.rtol * (self.rtol + jnp.linalg.norm(y))
+        return jnp.isfinite(trial.cost) & (ftol_ok | xtol_ok)
+
+    def relinearise(self, state, lin):
+        # scipy's running maximum of the column norms, at each new linearisation
+        return eqx.tree_at(lambda s: s.scale_inv, state, jnp.maximum(state.scale_inv, _column_norms(lin.h)))
+
+    def refuse(self, state):
+        # as after a non-finite trial: the radius shrinks (scipy: to a quarter of the step; here of the radius)
+        return eqx.tree_at(lambda s: (s.radius, s.alpha), state,
+                           (self.search.shrink * state.radius, state.alpha / self.search.shrink))
+
+
+# ---------------------------------------------------------------------------------------------------- the loop
+
+
+@eqx.filter_jit
+def _init(solver, y, lin):
+    return eqx.filter_vmap(solver.init)(y, lin)
+
+
+@eqx.filter_jit
+def _step(solver, core: ProblemCore, y, lin, state, active):
+    """`solver.step` and `solver.terminate` for every start (leading axis of all but `solver`, `core`)."""
+
+    def one(y, lin, state, active):
+        trial, new_state = solver.step(core.residuals, y, lin, state, active)
+        terminate = solver.terminate(y, lin, trial, new_state)
+        # the step itself stays inside (an output would change how XLA fuses y + step, e.g. into an FMA)
+        return eqx.tree_at(lambda t: t.step, trial, None), new_state, terminate
+
+    return over_starts(one, (0, 0, 0, 0), y.shape[0])(y, lin, state, active)
+
+
+@eqx.filter_jit
+def _relinearise(solver, state, lin, mask):
+    new = eqx.filter_vmap(solver.relinearise)(state, lin)
+    return _select(mask, new, state)
+
+
+@eqx.filter_jit
+def _refuse(solver, state, new_state, mask):
+    """`solver.refuse(state)` where `mask` (the starts whose trial the model refused), `new_state` elsewhere."""
+    return _select(mask, eqx.filter_vmap(solver.refuse)(state), new_state)
+
+
+def _select(mask, new, old):
+    return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
+@jax.jit
+def _where(mask, new, old):
+    """Per start (leading axis): `new` where `mask`, else `old` (one compiled call for a whole pytree)."""
+    return _select(mask, new, old)
+
+
+@dataclasses.dataclass
+class Run:
+    """One start's run of `iterate`: the last accepted point `u`, counts, accepted costs and the step of each, and
+    its verdict."""
+
+    u: Array
+    steps: int
+    accepted: int
+    history: list
+    history_steps: list
+    verdict: Verdict
+    linearisation: Linearisation | None = None  # at `u`, when the last accepted point was linearised
+
+
+def _refused_trials(solver, core, y, lin, state, active) -> np.ndarray:
+    """Which active starts' trial points the model refuses (its runtime checks raise): each start's trial alone."""
+    refused = np.zeros(y.shape[0], bool)
+    for i in np.flatnonzero(active):
+        one = jtu.tree_map(lambda x: x[i : i + 1], (y, lin, state))
+        try:
+            jax.block_until_ready(_step(solver, core, *one, jnp.ones((1,), bool)))
+        except eqx.EquinoxRuntimeError:
+            refused[i] = True
+    return refused
+
+
+def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: int,
+            meter: AbstractProgressMeter, label: str = "", max_rejections: int = 40, window: int = 5) -> list[Run]:
+    r"""Run `solver` from every start in `u0` (shape `(starts, p)`) at once, stepped from Python (progress meter,
+    Ctrl-C): the starts run in lockstep under `vmap`, a finished start is frozen, and each has its own state,
+    history and verdict.
+
+    Besides the solver's own test (`terminate`), a start ends: converged when its accepted steps no longer lower the
+    cost (mean relative decrease over the last `window` below the solver's `ftol`: parameters drifting along a flat
+    valley); `stalled` after `max_rejections` consecutive rejected trials; `max_steps_reached`; `interrupted` on
+    Ctrl-C (the last accepted point is kept). A trial point at which the model raises a runtime check
+    (`eqx.error_if`) is a failed trial of that start only: the others take their step as usual.
+    """
+    n_starts = u0.shape[0]
+    ftol = float(solver.ftol)
+    y = u0
+    r, cost, g, h, finite = linearise(core, y)
+    lin = Linearisation(r, cost, g, h)
+    cost_np, finite_np = np.asarray(cost), np.asarray(finite)
+    histories = [[float(c)] for c in cost_np]
+    history_steps = [[0] for _ in range(n_starts)]
+    steps, accepted, since = np.zeros(n_starts, int), np.zeros(n_starts, int), np.zeros(n_starts, int)
+    fresh = np.ones(n_starts, bool)  # whether `lin` is at the start's current point
+    verdicts: list = [None] * n_starts
+    for i in range(n_starts):
+        if not np.isfinite(cost_np[i]):
+            verdicts[i] = Verdict("nonfinite_initial", "the model's predictions are not finite at the initial "
+                                                       "parameters")
+        elif not finite_np[i]:
+            verdicts[i] = Verdict("nonfinite_initial", "the Jacobian is not finite at the initial parameters")
+    active = np.array([v is None for v in verdicts])
+    state = _init(solver, y, lin)
+    meter_state = meter.init(label, n_starts)
+    t0 = time.perf_counter()
+    model_error = ""
+    try:
+        for k in range(1, max_steps + 1):
+            if not active.any():
+                break
+            refused = np.zeros(n_starts, bool)
+            try:
+                out = _step(solver, core, y, lin, state, jnp.asarray(active))
+                jax.block_until_ready(out)
+            except eqx.EquinoxRuntimeError as e:
+                # the model refused a trial point (a runtime check, e.g. a stiffness that underflowed to 0): find
+                # which starts' trials it refuses and step the others as usual
+                model_error = str(e).strip().splitlines()[0]
+                refused = _refused_trials(solver, core, y, lin, state, active) if n_starts > 1 else active.copy()
+                if not refused.any():  # raised only batched: every active start's trial counts as refused
+                    refused = active.copy()
+                out = _step(solver, core, y, lin, state, jnp.asarray(active & ~refused))
+            trial, new_state, terminate = out
+            if refused.any():
+                new_state = _refuse(solver, state, new_state, jnp.asarray(refused))
+            accept_np, terminate_np = np.asarray(trial.accept) & ~refused, np.asarray(terminate) & ~refused
+            ok_np, cost_eval_np = np.asarray(trial.ok) | refused, np.asarray(trial.cost)
+            take = active & accept_np & ok_np
+            relinearise = np.zeros(n_starts, bool)
+            for i in np.flatnonzero(active):
+                steps[i] = k
+                if not ok_np[i]:
+                    verdicts[i] = Verdict("linear_solve_failed", result_message("linear_solve_failed"))
+                    continue
+                if take[i]:
+                    accepted[i], since[i] = accepted[i] + 1, 0
+                    fresh[i] = False
+                    hist = histories[i]
+                    hist.append(float(cost_eval_np[i]))
+                    history_steps[i].append(k)
+                else:
+                    since[i] += 1
+                if terminate_np[i]:
+                    verdicts[i] = Verdict("successful", solver.converged_reason)
+                elif take[i]:
+                    if len(hist) > window and hist[-window - 1] - hist[-1] <= ftol * window * hist[-1]:
+                        verdicts[i] = Verdict("successful", f"converged (mean relative cost decrease per accepted "
+                                                            f"step over the last {window} below ftol = {ftol:g})")
+                    else:
+                        relinearise[i] = True
+                elif since[i] >= max_rejections:
+                    why = f"; last model error: {model_error}" if model_error else ""
+                    verdicts[i] = Verdict("stalled", f"no decrease of the cost in {since[i]} consecutive trial "
+                                                     f"steps (stalled or diverging{why})")
+            y, lin_r, lin_cost = _where(jnp.asarray(take), (trial.y, trial.r, trial.cost), (y, lin.r, lin.cost))
+            lin = Linearisation(lin_r, lin_cost, lin.g, lin.h)
+            state = _where(jnp.asarray(active), new_state, state)
+            active = np.array([v is None for v in verdicts])
+            if relinearise.any():
+                _, _, g_new, h_new, finite = linearise(core, y)
+                g, h = _where(jnp.asarray(relinearise), (g_new, h_new), (lin.g, lin.h))
+                lin = Linearisation(lin.r, lin.cost, g, h)
+                state = _relinearise(solver, state, lin, jnp.asarray(relinearise))
+                fresh |= relinearise
+                for i in np.flatnonzero(relinearise & ~np.asarray(finite)):
+                    verdicts[i] = Verdict("nonfinite", "the Jacobian is not finite at an accepted point")
+                active = np.array([v is None for v in verdicts])
+            best = min(hh[-1] for hh in histories)
+            meter_state = meter.step(meter_state, Progress(label, k, best, int(accepted[0]), int(active.sum()),
+                                                           n_starts, time.perf_counter() - t0))
+    except KeyboardInterrupt:
+        for i in np.flatnonzero(active):
+            verdicts[i] = Verdict("interrupted", result_message("interrupted"))
+    finally:
+        meter.close(meter_state)
+    runs = []
+    for i in range(n_starts):
+        verdict = verdicts[i] or Verdict("max_steps_reached", f"max_steps = {max_steps} reached before convergence")
+        lin_i = jtu.tree_map(lambda x: x[i], lin) if fresh[i] else None
+        runs.append(Run(y[i], int(steps[i]), int(accepted[i]), histories[i], history_steps[i], verdict, lin_i))
+    return runs

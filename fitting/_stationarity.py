@@ -1,0 +1,149 @@
+"""Is a fit's end point a minimum? MINPACK's gradient test, and for the piecewise smooth models (the exact hysteresis
+operators) one-sided probes of the cost; the point past a kink that `fitting.solve` restarts from."""
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._solver import Linearisation, Verdict
+
+KINK_FTOL = 1e-5
+"""A fit whose last restart past a kink (`solve`'s `kink_restarts`) lowered the cost by less than this fraction of
+it no longer decreases in practice: it is converged (`"converged_at_kink"`) whatever the probed slopes."""
+
+
+def kink_ftol(m: int, p: int) -> float:
+    r"""The relative cost decrease below which a restart past a kink counts as no decrease: `KINK_FTOL`, or, when
+    larger, $1/(m - p)$ — moving one parameter by one standard error changes the cost
+    $\tfrac12\sum r^2$ by $\hat\sigma^2/2 = \text{cost}/(m - p)$, so a smaller gain is below what the data can
+    resolve."""
+    return max(KINK_FTOL, 1.0 / max(m - p, 1))
+
+
+def descent_point(problem, u, lin: Linearisation, gtol: float = 1e-2):
+    """A point of lower cost than `u` past a kink that stopped the steps: from the lowest-cost probe of
+    `_probe_descent`, the step along its direction doubled while the cost keeps falling; `None` when `u` passes the
+    gtol test (or its linearisation `lin` is not finite: nothing to follow) or no probe lowers the cost."""
+    r, jtr, jtj = (np.asarray(x) for x in (lin.r, lin.g, lin.h))
+    if not np.all(np.isfinite(jtr)) or max_gradient_cosine(r, jtr, jtj) <= gtol:
+        return None  # stationary by MINPACK's gtol test
+    cost = 0.5 * float(np.sum(r**2))
+    if not np.isfinite(cost):
+        return None
+    slope, _, best = _probe_descent(problem, u, cost, r, jtr, jtj)
+    if best is None or slope >= -gtol:
+        return None  # no probe lowers the cost by more than the gtol test allows
+    # a line search along the best probed direction: double the step while the cost keeps falling
+    e, step, c = best
+    u = np.asarray(u, dtype=float)
+    limit = max(1.0, float(np.max(np.abs(u))))  # at most a unit change of the largest scaled parameter
+    while 2 * step <= limit:
+        c2 = _probe_cost(problem, u + 2 * step * e)
+        if not (np.isfinite(c2) and c2 < c):
+            break
+        step, c = 2 * step, c2
+    return u + step * e
+
+
+def _probe_cost(problem, u) -> float:
+    """The cost at `u`; `inf` where the predictions are not finite or the model's runtime checks fail."""
+    try:
+        rr = np.asarray(problem.residuals(jnp.asarray(u, dtype=problem.u0.dtype)))
+    except eqx.EquinoxRuntimeError:
+        return np.inf
+    c = 0.5 * float(np.sum(rr**2))
+    return c if np.isfinite(c) else np.inf
+
+
+def _probe_descent(problem, u, cost, r, jtr, jtj) -> tuple[float, bool, Any]:
+    r"""The subgradient form of the gtol test, for a fit that stops where the cost is not differentiable.
+
+    For directions $e$ (± each scaled parameter, the negative gradient, the Gauss–Newton step) and steps $h$ of
+    1e-7 and 1e-5 of max(1, |u|): the one-sided slope $(c(u + h e) - c(u))/h$, in the units of the gtol test,
+    $\|r\|\,\|J e\|$ (for a smooth cost it is the cosine between $r$ and $J e$, the quantity the gtol test bounds).
+    Returns the smallest (steepest descent, negative) of them, whether a step gave non-finite residuals, and the
+    probe of lowest cost if it is below `cost` (`(direction, step, cost)`; else `None`)."""
+    u = np.asarray(u, dtype=float)
+    jtj = np.asarray(jtj, dtype=float)
+    p = u.size
+    directions = [np.eye(p)[i] * sgn for i in range(p) for sgn in (1.0, -1.0)]
+    g = -np.asarray(jtr, dtype=float)
+    if np.any(g):
+        directions.append(g / np.max(np.abs(g)))
+    gn = np.linalg.lstsq(jtj, g, rcond=1e-12)[0]
+    if np.all(np.isfinite(gn)) and np.any(gn):
+        directions.append(gn / np.max(np.abs(gn)))
+    size = max(1.0, float(np.max(np.abs(u)))) if p else 1.0
+    rnorm = float(np.sqrt(np.sum(np.asarray(r, dtype=float) ** 2)))
+    slope, nonfinite, best, best_cost = np.inf, False, None, cost
+    for h in (1e-7, 1e-5):
+        for e in directions:
+            scale = rnorm * np.sqrt(max(float(e @ jtj @ e), 0.0))
+            if not scale > 0:
+                continue  # a direction the residuals do not depend on
+            c = _probe_cost(problem, u + h * size * e)
+            if np.isfinite(c):
+                slope = min(slope, (c - cost) / (h * size) / scale)
+                if c < best_cost:
+                    best, best_cost = (e, h * size, c), c
+            else:
+                nonfinite = True
+    return slope, nonfinite, best
+
+
+def max_gradient_cosine(r, jtr, jtj) -> float:
+    """MINPACK's gtol quantity: the largest |cos| between the residual and a Jacobian column (0 for a zero residual
+    or no parameters)."""
+    r, jtr, jtj = (np.asarray(x) for x in (r, jtr, jtj))
+    col_norms = np.sqrt(np.clip(np.diag(jtj), 0.0, None))
+    rnorm = np.sqrt(np.sum(r**2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = np.abs(jtr) / (col_norms * rnorm)
+    return float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
+
+
+
+
+def stationarity_verdict(problem, u, lin: Linearisation, verdict: Verdict, *, initial_cost: float, gtol: float = 1e-2,
+                         kink_gain: float | None = None) -> Verdict:
+    r"""The final verdict of a fit the solver ended at `u` with `verdict`, from MINPACK's first-order test: where
+    the largest cosine between the residual and a Jacobian column (from `lin`, the linearisation at `u`) exceeds
+    `gtol`, a converged fit is checked: rounding-level residuals are `"converged_zero_residual"`; a point where the
+    cost rises along every probed direction (`_probe_descent`) is a minimum at a kink, `"converged_at_kink"`, as is
+    one whose last restart past a kink gained less than `kink_ftol` (`kink_gain`); anything else failed,
+    `"not_stationary"`. Other verdicts are returned unchanged."""
+    r, jtr, jtj = (np.asarray(x) for x in (lin.r, lin.g, lin.h))
+    m, p = problem.num_residuals, problem.num_params
+    cost = 0.5 * float(np.sum(r**2))
+    gradient_cosine = max_gradient_cosine(r, jtr, jtj)
+    if not verdict.success or not gradient_cosine > gtol:
+        return verdict
+    if cost <= (1e4 * np.finfo(float).eps) ** 2 * initial_cost:
+        # the residuals are rounding noise: their direction, hence the cosine, means nothing
+        return Verdict("converged_zero_residual",
+                       f"converged to a zero residual (cost {cost:.3e}, {cost / initial_cost:.1e} of the start's: the "
+                       f"gradient test max |cos(r, J_i)| = {gradient_cosine:.2e} is rounding noise there)")
+    slope, nonfinite, _ = _probe_descent(problem, u, cost, r, jtr, jtj)
+    if slope >= -gtol and not nonfinite:
+        # the one-sided slopes of the cost along every probed direction pass the gtol test: a minimum where the cost
+        # is not differentiable (the exact operators are piecewise smooth), where the gradient (one side's
+        # derivative) cannot
+        return Verdict("converged_at_kink",
+                       f"converged at a kink of the cost (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
+                       f"{gtol:g} from one side's derivative, but the cost rises along ± each parameter, the "
+                       f"gradient and the Gauss–Newton direction: steepest one-sided slope {slope:+.1e} in gtol's "
+                       "units; the exact, piecewise smooth model is not differentiable there)")
+    if kink_gain is not None and kink_gain < kink_ftol(m, p) and not nonfinite:
+        return Verdict("converged_at_kink",
+                       f"converged: the cost no longer decreases (the last restart past a kink lowered it by "
+                       f"{kink_gain:.1e} of it, below {kink_ftol(m, p):.1e}: less than moving one parameter by "
+                       f"one standard error changes it), although it still falls along a probed "
+                       f"direction at a one-sided slope of {slope:+.1e} in gtol's units (gtol = {gtol:g}): the "
+                       "kinks of the exact, piecewise smooth model stop every step within a short distance")
+    why = (f"the cost falls along a probed direction (slope {slope:+.1e} in gtol's units)"
+           if slope < -gtol else "the model is not finite next to this point")
+    return Verdict("not_stationary",
+                   f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > "
+                   f"gtol = {gtol:g}; {why}): the trust region shrank without a decrease")

@@ -1,0 +1,126 @@
+"""The solver as components: results enumeration, progress meters, solver instances, per-start refusal, throw."""
+
+import io
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+import pytest
+
+import fitting
+import piezojax as pj
+from piezojax._checks import PiezojaxValueError
+
+DT = 1e-3
+T = np.arange(400) * DT
+V = 10 * np.sin(2 * np.pi * 5 * T)
+
+
+class Gain(eqx.Module):
+    a: jax.Array
+
+
+def _refusing(m, d):  # the model refuses a > 1.2 (a runtime check, as a physical block's parameter check)
+    y = jnp.exp(m.a) * d.v_in
+    return {"displacement": eqx.error_if(y, m.a > 1.2, "`a` must be at most 1.2")}
+
+
+PREDICTOR = fitting.Predictor(_refusing, ("displacement",))
+
+
+@pytest.fixture(scope="module")
+def problem():
+    rng = np.random.default_rng(0)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=T, v_in=V, name="g",
+                                                         displacement=np.e * V + 1e-3 * rng.standard_normal(T.size))])
+    return fitting.Problem(Gain(jnp.asarray(-3.0)), ds, predictor=PREDICTOR)
+
+
+def test_results_enumeration_names_every_code_with_a_message():
+    from fitting._solver import HARD_FAILURES, SUCCESSES, result_code, result_message
+
+    codes = set(fitting.RESULTS._name_to_item)
+    assert {"successful", "converged_at_kink", "converged_zero_residual", "max_steps_reached", "stalled",
+            "not_stationary", "interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed"} == codes
+    assert set(SUCCESSES) | set(HARD_FAILURES) < codes
+    for code in codes:
+        item = getattr(fitting.RESULTS, code)
+        assert result_code(item) == code and result_message(code) == fitting.RESULTS[item] and result_message(code)
+    # usable under jit and vmap, as optx.RESULTS
+    batch = jax.vmap(lambda ok: fitting.RESULTS.where(ok, fitting.RESULTS.successful, fitting.RESULTS.stalled))(
+        jnp.array([True, False]))
+    assert result_code(batch) == ["successful", "stalled"]
+    assert fitting.Verdict("converged_at_kink", "r").success and fitting.Verdict("nonfinite", "r").hard
+
+
+def test_a_refused_trial_shrinks_only_its_own_start(problem):
+    # start 0's first trial lands at a > 1.2, which the model refuses; the starts at 0.5 step as they do beside a
+    # start that is never refused (before, every start's step shrank with it)
+    starts = [Gain(jnp.asarray(-3.0)), Gain(jnp.asarray(0.5))]
+    with_refusal = fitting.solve(problem, starts=starts, progress=False, max_steps=3)
+    calm = fitting.solve(problem, starts=[Gain(jnp.asarray(0.3)), Gain(jnp.asarray(0.5))], progress=False,
+                         max_steps=3)
+    assert [s["code"] for s in with_refusal.starts] == ["max_steps_reached"] * 2
+    assert with_refusal.starts[1]["cost"] == calm.starts[1]["cost"]  # the same steps, bit for bit
+    alone = fitting.solve(problem, progress=False, max_steps=1)  # start 0 alone: its first trial is refused
+    assert alone.accepted_steps == 0 and alone.cost == alone.initial_cost
+    full = fitting.solve(problem, starts=starts, progress=False)
+    assert full.success and all(s["success"] for s in full.starts), full.starts
+    assert full.values[0] == pytest.approx(1.0, abs=5 * full.std_errors[0])
+
+
+class _Recorder(fitting.AbstractProgressMeter):
+    log: list
+
+    def init(self, label, starts):
+        self.log.append(("init", label, starts))
+        return 0
+
+    def step(self, state, progress):
+        self.log.append(("step", progress.label, progress.step, progress.best_cost, progress.running))
+        return state + 1
+
+    def close(self, state):
+        self.log.append(("close", state))
+
+
+def test_progress_meters_are_pluggable(problem):
+    log = []
+    res = fitting.solve(problem, progress=_Recorder(log), smoothing=None, max_steps=50)
+    assert log[0] == ("init", "", 1) and log[-1] == ("close", res.steps)
+    steps = [e for e in log if e[0] == "step"]
+    assert [e[2] for e in steps] == list(range(1, res.steps + 1))
+    assert steps[-1][3] == pytest.approx(res.cost, rel=1e-12)  # the best accepted cost so far
+    text = io.StringIO()
+    fitting.solve(problem, progress=fitting.TextProgressMeter(stream=text), max_steps=2)
+    assert text.getvalue().startswith("\r  step    1  cost ") and text.getvalue().endswith("\n")
+    with pytest.raises(pj.PiezojaxError, match="`progress`"):
+        fitting.solve(problem, progress="loud")
+
+
+def test_a_solver_instance_is_a_method(problem):
+    by_name = fitting.solve(problem, progress=False, rtol=1e-9, atol=1e-11)
+    lm = fitting.LevenbergMarquardt(rtol=1e-9, atol=1e-11,
+                                    descent=optx.DampedNewtonDescent(linear_solver=lx.Cholesky()))
+    by_instance = fitting.solve(problem, progress=False, method=lm)
+    assert by_instance.u == by_name.u and by_instance.steps == by_name.steps
+    trf = fitting.solve(problem, progress=False, method=fitting.TrustRegion())
+    assert trf.success and trf.cost == pytest.approx(by_name.cost, rel=1e-9)
+    # a different search is a different algorithm (here: a search that never enlarges the step)
+    cautious = fitting.LevenbergMarquardt(search=optx.ClassicalTrustRegion(high_constant=1.0))
+    slow = fitting.solve(problem, progress=False, method=cautious, max_steps=5)
+    assert slow.steps == 5 and slow.cost > by_name.cost
+    with pytest.raises(PiezojaxValueError, match="`linear_solver`"):
+        fitting.solve(problem, progress=False, method=lm, linear_solver=lx.LU())
+
+
+def test_problem_is_immutable(problem):
+    with pytest.raises(AttributeError, match="immutable"):
+        problem.u0 = problem.u0 * 2
+    with pytest.raises(TypeError):
+        problem.weights["displacement"] = 1.0
+    other = problem.with_frozen(problem.frozen)
+    assert other is not problem and other.core is not problem.core and problem.u0 == other.u0
