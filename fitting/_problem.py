@@ -57,13 +57,14 @@ def _matches(path: str, selector: str) -> bool:
 def free_mask(model, free=None):
     """Boolean pytree (same structure as `model`) marking the free array leaves.
 
-    `free`: `None` — every inexact array leaf except hysteresis `smoothing` (a continuation setting, not a
-    parameter); a callable `where(model)` returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of
+    `free`: `None` — every inexact array leaf except the fields its blocks declare as settings with `pj.setting()`
+    (the hysteresis operators' `smoothing`: a continuation setting, not a parameter); a callable `where(model)` returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of
     path strings (see `parameter_paths`), each naming a parameter or a whole block (`"hysteresis"`).
     """
     available = list(parameter_paths(model))
     if free is None:
-        chosen = {p for p in available if not (p == "smoothing" or p.endswith(".smoothing"))}
+        settings = [_path_string(path) for path in pj.setting_key_paths(model)]
+        chosen = {p for p in available if not any(_matches(p, s) for s in settings)}
     elif callable(free):
         marker = jtu.tree_map(lambda x: False, model)
         try:

@@ -78,6 +78,8 @@ from ._parametrisation import (
     Positive as Positive,
     constrain as constrain,
     inv_softplus as inv_softplus,
+    setting as setting,
+    setting_key_paths as setting_key_paths,
     softplus as softplus,
     unwrap as unwrap,
 )

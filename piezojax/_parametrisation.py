@@ -13,6 +13,7 @@ model = pj.unwrap(params)  # a valid PrandtlIshlinskii for any value of the raw 
 """
 
 import abc
+import dataclasses
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -178,6 +179,50 @@ class Fractions(AbstractReparam):
         # softmax over [raw, 0] without the last entry, computed stably
         z = jnp.concatenate([self.raw, jnp.zeros((1,), self.raw.dtype)])
         return jax.nn.softmax(z)[:-1]
+
+
+_SETTING = "piezojax.setting"
+
+
+def setting(**kwargs) -> Any:
+    """A dataclass field (`eqx.field`, same keyword arguments) for a *setting* of a block rather than a parameter: an
+    array the block computes with that a calibration does not fit by default, such as a hysteresis operator's
+    `smoothing` (a continuation setting: 0 is the exact operator). `fitting.free_mask` (and so `fitting.fit` without
+    `free`) leaves settings out; naming one in `free` still frees it.
+
+    ```python
+    class MyOperator(pj.AbstractHysteresis):
+        thresholds: Array
+        smoothing: Array = pj.setting()
+    ```
+    """
+    metadata = dict(kwargs.pop("metadata", None) or {})
+    metadata[_SETTING] = True
+    return eqx.field(metadata=metadata, **kwargs)
+
+
+def setting_key_paths(tree: PyTree[Any]) -> list[tuple]:
+    """The key paths (as `jax.tree_util.tree_flatten_with_path` spells them) of every field declared with
+    `pj.setting()` in the modules of `tree`, whatever the field holds (an array, a reparametrisation wrapper)."""
+    out: list[tuple] = []
+
+    def walk(x, prefix):
+        if isinstance(x, eqx.Module):
+            for f in dataclasses.fields(x):
+                path = (*prefix, jtu.GetAttrKey(f.name))
+                if f.metadata.get(_SETTING, False):
+                    out.append(path)
+                else:
+                    walk(getattr(x, f.name, None), path)
+        elif isinstance(x, list | tuple):
+            for i, v in enumerate(x):
+                walk(v, (*prefix, jtu.SequenceKey(i)))
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                walk(v, (*prefix, jtu.DictKey(k)))
+
+    walk(tree, ())
+    return out
 
 
 def _is_reparam(x: Any) -> bool:

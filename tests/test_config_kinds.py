@@ -24,7 +24,7 @@ class WeightedPlay(pj.AbstractHysteresis):
 
     weight: jax.Array
     threshold: jax.Array
-    smoothing: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))  # exact (not used)
+    smoothing: jax.Array = pj.setting(default_factory=lambda: jnp.zeros(()))  # exact (not used); not fitted
 
     def init(self):
         return jnp.zeros(())

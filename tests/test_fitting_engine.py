@@ -252,10 +252,22 @@ def test_free_selection_by_path_and_selector(data):
     np.testing.assert_allclose(np.asarray(p1.physical(p1.u0)), [10.0, 30.0, 2e-9], rtol=1e-12)
     p2 = fitting.Problem(model, data, free=lambda m: (m.hysteresis.thresholds, m.coupling), scales="value")
     assert p2.parameter_names() == p1.parameter_names()
-    # default: every parameter except the smoothing
+    # default: every parameter except the fields declared as settings (pj.setting(): the smoothing), by declaration,
+    # not by name: a field called `smoothing` that is not declared a setting is a parameter, a setting of another
+    # name is not; naming a setting in `free` frees it
     p3 = fitting.Problem(model, data, scales="value")
     assert not any("smoothing" in n for n in p3.parameter_names())
     assert "dynamics.omega[0]" in p3.parameter_names()
+    assert [jax.tree_util.keystr(k) for k in pj.setting_key_paths(model)] == [".hysteresis.smoothing"]
+
+    class Knob(eqx.Module):
+        smoothing: jax.Array
+        level: jax.Array = pj.setting()
+
+    names = fitting.free_mask(Knob(jnp.asarray(0.1), jnp.asarray(2.0)))
+    assert (names.smoothing, names.level) == (True, False)
+    freed = fitting.Problem(model, data, free=["hysteresis.smoothing"], scales="value")
+    assert freed.parameter_names() == ["hysteresis.smoothing"]
     with pytest.raises(PiezojaxValueError, match="no parameter 'hysteresis.gain'.*available: .*hysteresis.weights"):
         fitting.Problem(model, data, free=["hysteresis.gain"])
 

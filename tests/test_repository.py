@@ -58,7 +58,8 @@ def _imports(path: pathlib.Path) -> set[str]:
 FOUNDATIONS = {"_checks", "_dtypes", "_custom_types", "_parametrisation", "_config"}
 # What each folder may import from the library (README, "Layout"); a new edge is a design decision, not an accident.
 ALLOWED = {
-    "piezojax._hysteresis": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._hysteresis"},
+    "piezojax._hysteresis": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._hysteresis",
+                             "piezojax._parametrisation"},
     "piezojax._linear": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._linear"},
     "piezojax._nonlinear": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._nonlinear"},
     "piezojax._creep": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._creep",

@@ -21,7 +21,8 @@ class AbstractHysteresis(eqx.Module):
     to `v` along the straight line between them. Because the path between samples is a straight line, the exact
     operators are rate-independent: inserting samples on that line changes nothing at the original samples.
 
-    `smoothing` (0 = exact) selects a smooth relaxation that keeps this property; see each operator.
+    `smoothing` (0 = exact) selects a smooth relaxation that keeps this property; see each operator. Declare it as a
+    setting, `smoothing: Array = pj.setting()`, so that a calibration does not fit it by default.
 
     `scan(signal, state)` runs the cell over a signal with `jax.lax.scan` and returns the final state with the
     output; `__call__(signal, state=None)` returns only the output.

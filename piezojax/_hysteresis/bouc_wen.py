@@ -10,6 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import PiezojaxValueError, check_scalar, check_value, concrete_or_none
 from .._custom_types import ScalarLike, Signal
 from .._dtypes import param_dtype
+from .._parametrisation import setting
 from .base import AbstractHysteresis
 
 _OUTPUTS = ("dv-z", "dv+z", "z")
@@ -202,7 +203,7 @@ class BoucWen(AbstractHysteresis):
     gamma: Float[Array, ""]
     n: Float[Array, ""]
     d: Float[Array, ""]
-    smoothing: Float[Array, ""]
+    smoothing: Float[Array, ""] = setting()
     output: str = eqx.field(static=True)
     method: str = eqx.field(static=True)
     substeps: int = eqx.field(static=True)

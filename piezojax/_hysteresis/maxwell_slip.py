@@ -7,6 +7,7 @@ from jaxtyping import Array, Float
 from .._checks import PiezojaxValueError, check_positive, check_vector
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
+from .._parametrisation import setting
 from .base import AbstractHysteresis
 from .play import check_smoothing, error_if_bad_smoothing, run_exact_or_smooth, stop_update
 
@@ -52,7 +53,7 @@ class MaxwellSlip(AbstractHysteresis):
 
     stiffness: Float[Array, " n"]
     breakaway: Float[Array, " n"]
-    smoothing: Float[Array, ""]
+    smoothing: Float[Array, ""] = setting()
 
     def __init__(self, stiffness: VectorLike, breakaway: VectorLike, smoothing: ScalarLike = 0.0):
         dtype = param_dtype(stiffness, breakaway, smoothing)

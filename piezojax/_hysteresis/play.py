@@ -29,6 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import PiezojaxValueError, as_float_array, check_positive, check_value, concrete_or_none
 from .._custom_types import ScalarLike
 from .._dtypes import param_dtype
+from .._parametrisation import setting
 from .base import AbstractHysteresis
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -472,7 +473,7 @@ class PlayOperator(_AbstractStopCell):
     """
 
     thresholds: Float[Array, "*n"]
-    smoothing: Float[Array, ""]
+    smoothing: Float[Array, ""] = setting()
 
     def __init__(self, thresholds: ArrayLike, smoothing: ScalarLike = 0.0):
         dtype = param_dtype(thresholds, smoothing)
@@ -506,7 +507,7 @@ class StopOperator(_AbstractStopCell):
     """
 
     thresholds: Float[Array, "*n"]
-    smoothing: Float[Array, ""]
+    smoothing: Float[Array, ""] = setting()
 
     def __init__(self, thresholds: ArrayLike, smoothing: ScalarLike = 0.0):
         dtype = param_dtype(thresholds, smoothing)

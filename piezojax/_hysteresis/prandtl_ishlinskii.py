@@ -17,6 +17,7 @@ from .._checks import (
 )
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
+from .._parametrisation import setting
 from .play import (
     _AbstractStopCell,
     _tangent_or_none,
@@ -144,7 +145,7 @@ class PrandtlIshlinskii(_AbstractStopCell):
     weights: Float[Array, " n"]
     thresholds: Float[Array, " n"]
     w0: Float[Array, ""]
-    smoothing: Float[Array, ""]
+    smoothing: Float[Array, ""] = setting()
 
     def __init__(
         self,

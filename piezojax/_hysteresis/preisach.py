@@ -17,6 +17,7 @@ from .._checks import (
 )
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
+from .._parametrisation import setting
 from .base import AbstractHysteresis
 from .play import (
     _AbstractStopCell,
@@ -96,7 +97,7 @@ class Preisach(AbstractHysteresis):
     beta: Float[Array, " relays"]
     mu: Float[Array, " relays"]
     offset: Float[Array, ""]
-    smoothing: Float[Array, ""]
+    smoothing: Float[Array, ""] = setting()
 
     def __init__(
         self,
@@ -301,7 +302,7 @@ class GaussianPreisach(_AbstractStopCell):
     weights: Array
     thresholds: Array
     sigma_s: Array
-    smoothing: Array
+    smoothing: Array = setting()
     _block: int = eqx.field(static=True, default=1024)
 
     def __init__(self, density: ArrayLike, sigma_r: ArrayLike, sigma_s: ArrayLike, *, w0: ArrayLike = 1.0,
