@@ -97,19 +97,12 @@ def default_predictor(model) -> Predictor:
     if isinstance(m, pj.Actuator):
         return actuator_predictor()
     if isinstance(m, pj.AbstractObserver):
-        # eval the structure once to see whether the observer estimates force
-        return observer_predictor(force=_observer_has_force(model))
+        return observer_predictor(force="force" in type(m).estimates)
     if isinstance(m, pj.AbstractHysteresis):
         return hysteresis_predictor()
     raise PiezojaxValueError(
         f"no built-in predictor for a {type(m).__name__}: pass `predictor=fitting.Predictor(fn, outputs=...)`"
     )
-
-
-def _observer_has_force(model) -> bool:
-    v = jnp.zeros((4,), jnp.zeros(()).dtype)
-    est = eqx.filter_eval_shape(lambda: pj.unwrap(model)(v, v, jnp.asarray(1.0, v.dtype)))
-    return est.force is not None
 
 
 def _as_arrays(experiments, inputs, dtype) -> ExperimentArrays:

@@ -58,8 +58,9 @@ def free_mask(model, free=None):
     """Boolean pytree (same structure as `model`) marking the free array leaves.
 
     `free`: `None` — every inexact array leaf except the fields its blocks declare as settings with `pj.setting()`
-    (the hysteresis operators' `smoothing`: a continuation setting, not a parameter); a callable `where(model)` returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of
-    path strings (see `parameter_paths`), each naming a parameter or a whole block (`"hysteresis"`).
+    (the hysteresis operators' `smoothing`: a continuation setting, not a parameter); a callable `where(model)`
+    returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of path strings (see `parameter_paths`),
+    each naming a parameter or a whole block (`"hysteresis"`).
     """
     available = list(parameter_paths(model))
     if free is None:

@@ -240,3 +240,15 @@ def test_reverse_mode_grad_matches_forward(setup000, setup002):
     for gl, jl in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(jac)):
         expected = np.tensordot(np.asarray(r), np.asarray(jl), axes=1)
         np.testing.assert_allclose(np.asarray(gl), expected, rtol=1e-8, atol=1e-12 * np.max(np.abs(expected)))
+
+
+def test_observers_declare_what_they_estimate():
+    # the declaration (a class variable) matches what the call returns; a calibration reads the declaration
+    import fitting
+
+    v = jnp.linspace(0.0, 1.0, 16)
+    for bench in (pj.IvanBench(), pj.BafumbaBench(), pj.ChenBench()):
+        obs = bench.observer()
+        est = obs(v, 0.01 * v, 1e-3)
+        assert ("force" in type(obs).estimates) == (est.force is not None), type(obs).__name__
+        assert fitting.default_predictor(obs).outputs == type(obs).estimates

@@ -1,5 +1,7 @@
 """Paper 001 (Ivan et al. 2009): force and displacement self-sensing by current integration."""
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
@@ -69,6 +71,8 @@ class ForceDisplacementObserver(AbstractObserver):
     est = obs(v_in, v_out, 1e-3)         # est.force [N], est.displacement [m]
     ```
     """
+
+    estimates: ClassVar[tuple[str, ...]] = ("displacement", "force")
 
     integrator_capacitance: Float[Array, ""]
     reference_capacitance: Float[Array, ""]

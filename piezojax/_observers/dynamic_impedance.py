@@ -1,5 +1,7 @@
 """Paper 000 (Bafumba Liseli et al. 2018): displacement observer with dynamic-impedance correction."""
 
+from typing import ClassVar
+
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
@@ -44,6 +46,8 @@ class DynamicImpedanceObserver(AbstractObserver):
     est = obs(v_in, v_out, 1e-3)         # est.displacement [m]
     ```
     """
+
+    estimates: ClassVar[tuple[str, ...]] = ("displacement",)
 
     feedback_resistance: Float[Array, ""]
     capacitance: Float[Array, ""]

@@ -1,5 +1,7 @@
 """Paper 002 (Chen & Li 2014): displacement and force from the sensor layer of a smart piezo stack."""
 
+from typing import ClassVar
+
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
@@ -36,6 +38,8 @@ class SensorLayerObserver(AbstractObserver):
     est = obs(v_a, v_s, 1e-4)            # est.displacement [m], est.force [N]
     ```
     """
+
+    estimates: ClassVar[tuple[str, ...]] = ("displacement", "force")
 
     d33: Float[Array, ""]
     amplifier_capacitance: Float[Array, ""]
