@@ -1,7 +1,6 @@
 """A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
 
 from collections.abc import Mapping, Sequence
-from types import MappingProxyType
 from typing import Any
 
 import equinox as eqx
@@ -362,7 +361,7 @@ class Problem:
         predictor: Predictor | None = None,
         targets: Sequence[str] | None = None,
         free=None,
-        weights: str | dict[str, float] = "range",
+        weights: str | Mapping[str, float] = "range",
         scales: Array | str = "jacobian",
         jacobian_chunk: int | None = None,
     ):
@@ -399,7 +398,7 @@ class Problem:
                 if c not in available:
                     raise PiezojaxValueError(f"`targets`: no experiment in the dataset has the channel {c!r}")
         self._set(targets=tuple(targets))
-        self._set(weights=MappingProxyType(self._weights(weights)))
+        self._set(_channel_weights=self._weights(weights))
 
         if jacobian_chunk is not None and not (isinstance(jacobian_chunk, int) and jacobian_chunk >= 1):
             raise PiezojaxValueError(f"`jacobian_chunk` must be a positive int or None, got {jacobian_chunk!r}")
@@ -440,7 +439,6 @@ class Problem:
             )
         self._set(mask=mask, core=core, theta0=theta0, u0=theta0 / scales, num_residuals=num_residuals,
                   num_params=int(theta0.size))
-        self._set(_ready=True)
 
     def _set(self, **attributes):
         for k, v in attributes.items():
@@ -526,6 +524,11 @@ class Problem:
         new = copy.copy(self)
         new._set(core=eqx.tree_at(lambda c: c.frozen, self.core, frozen))
         return new
+
+    @property
+    def weights(self) -> dict[str, float]:
+        """The weight $w_c$ of each target channel (a new dict: the problem itself does not change)."""
+        return dict(self._channel_weights)
 
     @property
     def scales(self) -> Array:

@@ -71,7 +71,9 @@ def _start_verdict(runs, n_levels) -> Verdict:
     for _, run in runs:
         if run.verdict.hard:
             return run.verdict
-    if len(runs) < n_levels:  # the levels stopped early without a hard failure of this start: another was interrupted
+    if len(runs) < n_levels:
+        # the levels stopped early without a hard failure of this start: another start was interrupted, which stops
+        # them all; this one did not reach the exact model either (all are then ranked by cost alone)
         return Verdict("interrupted", "interrupted by the user (Ctrl-C) before the last smoothing level")
     return runs[-1][1].verdict
 
@@ -118,7 +120,7 @@ def solve(
       starts, or perturbations of the initial model), fitted at once under `jax.vmap` (lockstep; each start keeps
       its own damping and verdict). The result is the start with the lowest final cost, with its verdict (a start
       that failed hard — non-finite, interrupted — only when all did); `result.starts` lists every start's cost and
-      verdict. `None`: the problem's model.
+      verdict (the reported start's after the stationarity test, as `result`). `None`: the problem's model.
       Memory and time per step grow with the number of starts.
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.

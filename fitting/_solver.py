@@ -27,7 +27,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
-from piezojax._checks import PiezojaxError
+from piezojax._checks import PiezojaxError, PiezojaxValueError
 
 from ._problem import ProblemCore, linearise, over_starts
 
@@ -92,6 +92,9 @@ class FitError(PiezojaxError, RuntimeError):
         super().__init__(f"fit failed: {result.reason}")
         self.result = result
         self.code = result.code
+
+    def __reduce__(self):  # pickled and copied with its result (the default would call __init__ with the message)
+        return type(self), (self.result,)
 
 
 # ---------------------------------------------------------------------------------------------------- progress
@@ -167,9 +170,9 @@ def as_progress_meter(progress) -> AbstractProgressMeter:
     """`True` → `TextProgressMeter()`, `False`/`None` → `NoProgressMeter()`, a meter → itself."""
     if isinstance(progress, AbstractProgressMeter):
         return progress
-    if progress is None or isinstance(progress, bool | np.bool_):
+    if progress is None or isinstance(progress, bool | int | np.bool_ | np.integer):
         return TextProgressMeter() if progress else NoProgressMeter()
-    raise PiezojaxError(f"`progress` must be True, False or a fitting.AbstractProgressMeter, got {progress!r}")
+    raise PiezojaxValueError(f"`progress` must be True, False or a fitting.AbstractProgressMeter, got {progress!r}")
 
 
 # ---------------------------------------------------------------------------------------------------- solvers
@@ -234,7 +237,9 @@ class AbstractNormalSolver(eqx.Module):
 
 
 def _tolerance(x):
-    return jnp.asarray(x, float)
+    # a NumPy float64 scalar: an array leaf (a new value is not a new compilation), exact on the host (the window
+    # test), cast to the parameters' dtype where the steps use it
+    return np.asarray(x, np.float64)
 
 
 class LevenbergMarquardt(AbstractNormalSolver):
@@ -282,8 +287,9 @@ class LevenbergMarquardt(AbstractNormalSolver):
 
     def terminate(self, y, lin, trial, state):
         # optimistix's Cauchy test (`cauchy_termination`, max norm) on the step and the change of the residuals
-        y_small = jnp.max(jnp.abs(trial.step) / (self.atol + self.rtol * jnp.abs(trial.y))) < 1
-        f_small = jnp.max(jnp.abs(trial.r - lin.r) / (self.atol + self.rtol * jnp.abs(trial.r))) < 1
+        rtol, atol = jnp.asarray(self.rtol, y.dtype), jnp.asarray(self.atol, y.dtype)
+        y_small = jnp.max(jnp.abs(trial.step) / (atol + rtol * jnp.abs(trial.y))) < 1
+        f_small = jnp.max(jnp.abs(trial.r - lin.r) / (atol + rtol * jnp.abs(trial.r))) < 1
         return trial.accept & y_small & f_small
 
     def relinearise(self, state, lin):
@@ -423,8 +429,9 @@ class TrustRegion(AbstractNormalSolver):
         return trial, _TrustRegionState(state.scale_inv, radius, alpha, ratio, actual)
 
     def terminate(self, y, lin, trial, state):
-        ftol_ok = (state.actual < self.ftol * lin.cost) & (state.ratio > self.search.low)
-        xtol_ok = jnp.linalg.norm(trial.step) < self.rtol * (self.rtol + jnp.linalg.norm(y))
+        ftol, xtol = jnp.asarray(self.ftol, y.dtype), jnp.asarray(self.rtol, y.dtype)
+        ftol_ok = (state.actual < ftol * lin.cost) & (state.ratio > self.search.low)
+        xtol_ok = jnp.linalg.norm(trial.step) < xtol * (xtol + jnp.linalg.norm(y))
         return jnp.isfinite(trial.cost) & (ftol_ok | xtol_ok)
 
     def relinearise(self, state, lin):
@@ -539,7 +546,7 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     state = _init(solver, y, lin)
     meter_state = meter.init(label, n_starts)
     t0 = time.perf_counter()
-    model_error = ""
+    model_errors = [""] * n_starts  # per start, the last runtime check the model raised at its trial point
     try:
         for k in range(1, max_steps + 1):
             if not active.any():
@@ -551,11 +558,23 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
             except eqx.EquinoxRuntimeError as e:
                 # the model refused a trial point (a runtime check, e.g. a stiffness that underflowed to 0): find
                 # which starts' trials it refuses and step the others as usual
-                model_error = str(e).strip().splitlines()[0]
+                message = str(e).strip().splitlines()[0]
                 refused = _refused_trials(solver, core, y, lin, state, active) if n_starts > 1 else active.copy()
                 if not refused.any():  # raised only batched: every active start's trial counts as refused
                     refused = active.copy()
-                out = _step(solver, core, y, lin, state, jnp.asarray(active & ~refused))
+                out = None
+                if (active & ~refused).any():
+                    try:  # the others' trials, batched as usual (a refused start stays at its point)
+                        out = _step(solver, core, y, lin, state, jnp.asarray(active & ~refused))
+                        jax.block_until_ready(out)
+                    except eqx.EquinoxRuntimeError:
+                        refused = active.copy()
+                        out = None
+                if out is None:  # no trial taken: every start stays where it is
+                    no = jnp.zeros((n_starts,), bool)
+                    out = Trial(None, y, lin.r, lin.cost, no, ~no), state, no
+                for i in np.flatnonzero(refused):
+                    model_errors[i] = message
             trial, new_state, terminate = out
             if refused.any():
                 new_state = _refuse(solver, state, new_state, jnp.asarray(refused))
@@ -585,7 +604,7 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                     else:
                         relinearise[i] = True
                 elif since[i] >= max_rejections:
-                    why = f"; last model error: {model_error}" if model_error else ""
+                    why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
                     verdicts[i] = Verdict("stalled", f"no decrease of the cost in {since[i]} consecutive trial "
                                                      f"steps (stalled or diverging{why})")
             y, lin_r, lin_cost = _where(jnp.asarray(take), (trial.y, trial.r, trial.cost), (y, lin.r, lin.cost))

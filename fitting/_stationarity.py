@@ -117,6 +117,8 @@ def stationarity_verdict(problem, u, lin: Linearisation, verdict: Verdict, *, in
     r, jtr, jtj = (np.asarray(x) for x in (lin.r, lin.g, lin.h))
     m, p = problem.num_residuals, problem.num_params
     cost = 0.5 * float(np.sum(r**2))
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jtr)) and np.all(np.isfinite(jtj))):
+        return verdict  # no test without a finite linearisation (the result reports its errors as not computed)
     gradient_cosine = max_gradient_cosine(r, jtr, jtj)
     if not verdict.success or not gradient_cosine > gtol:
         return verdict

@@ -108,6 +108,10 @@ def test_minimum_at_a_kink_is_converged_and_a_descent_point_is_not():
     assert "the cost falls along a probed direction" in bad.reason
     # a verdict that is not a success is not re-examined
     assert stationarity_verdict(problem, u, lin, fitting.Verdict("stalled", "s"), initial_cost=1.0).code == "stalled"
+    # nor one whose linearisation is not finite (no test to make; the probes would fail on NaN)
+    nan_lin = fitting.Linearisation(r, lin.cost, g, h.at[0, 0].set(jnp.nan))
+    ok = fitting.Verdict("successful", "s")
+    assert stationarity_verdict(problem, u, nan_lin, ok, initial_cost=1.0) == ok
 
 
 def test_zero_residual_fit_is_converged():

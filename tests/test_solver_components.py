@@ -97,7 +97,7 @@ def test_progress_meters_are_pluggable(problem):
     text = io.StringIO()
     fitting.solve(problem, progress=fitting.TextProgressMeter(stream=text), max_steps=2)
     assert text.getvalue().startswith("\r  step    1  cost ") and text.getvalue().endswith("\n")
-    with pytest.raises(pj.PiezojaxError, match="`progress`"):
+    with pytest.raises(PiezojaxValueError, match="`progress`"):
         fitting.solve(problem, progress="loud")
 
 
@@ -120,7 +120,22 @@ def test_a_solver_instance_is_a_method(problem):
 def test_problem_is_immutable(problem):
     with pytest.raises(AttributeError, match="immutable"):
         problem.u0 = problem.u0 * 2
-    with pytest.raises(TypeError):
-        problem.weights["displacement"] = 1.0
+    w = problem.weights
+    w["displacement"] = 1.0  # a copy
+    assert problem.weights["displacement"] != 1.0
+    import pickle
+
+    assert pickle.loads(pickle.dumps(problem)).weights == problem.weights
     other = problem.with_frozen(problem.frozen)
     assert other is not problem and other.core is not problem.core and problem.u0 == other.u0
+
+
+def test_fit_error_carries_the_failed_result_and_pickles(problem):
+    import pickle
+
+    with pytest.raises(fitting.FitError) as raised:
+        fitting.solve(problem, progress=False, max_steps=1, throw=True)
+    error = raised.value
+    assert error.code == "max_steps_reached" and not error.result.success and "max_steps" in str(error)
+    again = pickle.loads(pickle.dumps(error))
+    assert str(again) == str(error) and again.result.cost == error.result.cost
