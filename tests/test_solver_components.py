@@ -11,7 +11,6 @@ import optimistix as optx
 import pytest
 
 import fitting
-import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
 DT = 1e-3
