@@ -8,7 +8,7 @@ from ._benches.bafumba import (
     BafumbaBench as BafumbaBench,
     unimorph_dynamics as unimorph_dynamics,
 )
-from ._benches.chen import ChenBench as ChenBench
+from ._benches.chen import ChenBench as ChenBench, ChenStagePlant as ChenStagePlant
 from ._benches.common import (
     AbstractBench as AbstractBench,
     Record as Record,
@@ -24,6 +24,19 @@ from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegr
 from ._circuits.smart_stack import SmartStackCircuit as SmartStackCircuit
 from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCircuit
 from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans
+from ._control.adaptive_inverse import AdaptiveInverseController as AdaptiveInverseController
+from ._control.base import AbstractController as AbstractController, AbstractPlant as AbstractPlant
+from ._control.feedforward import (
+    FeedforwardFeedback as FeedforwardFeedback,
+    InverseFeedforward as InverseFeedforward,
+)
+from ._control.loop import (
+    LoopRecord as LoopRecord,
+    closed_loop as closed_loop,
+    tracking_error_percent as tracking_error_percent,
+)
+from ._control.narx import NarxNetwork as NarxNetwork, train_narx_online as train_narx_online
+from ._control.pid import PID as PID
 from ._creep.base import AbstractCreep as AbstractCreep
 from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
 from ._creep.lag import LagCreep as LagCreep

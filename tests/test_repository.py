@@ -66,6 +66,8 @@ ALLOWED = {
                         "piezojax._linear", "piezojax._hysteresis.play"},
     "piezojax._circuits": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._circuits",
                            "piezojax._linear"},
+    "piezojax._control": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._control",
+                          "piezojax._parametrisation"},
     "piezojax._observers": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._observers",
                             "piezojax._circuits", "piezojax._linear"},
 }

@@ -90,6 +90,17 @@ class SmartStackCircuit(AbstractCircuit):
         r"""$k_p k_s / (k_p + k_s)$, the static gain of eq. (3) [N/m]."""
         return self.k_p * self.k_s / (self.k_p + self.k_s)
 
+    def displacement_sensitivity(self) -> Float[Array, ""]:
+        r"""Eq. (9): $x_a / V_s = (k_p + k_s)\,C / (k_p k_s d_{33})$ [m/V] below $\omega_z$, without crosstalk
+        (paper: 11.6126 µm/V)."""
+        return self.amplifier_capacitance / (self.d33 * self.series_stiffness())
+
+    def zero_frequency(self) -> Float[Array, ""]:
+        r"""Eq. (5): the frequency of the zeros of eq. (3), $\omega_z = \sqrt{k_s k_e k_p / (m_e (k_s k_e + k_e k_p
+        + k_p k_s))}$ [rad/s]; below it the sensor voltage follows $x_a$ statically (eq. 6)."""
+        kp, ks, ke = self.k_p, self.k_s, self.k_e
+        return jnp.sqrt(ks * ke * kp / (self.m_e * (ks * ke + ke * kp + kp * ks)))
+
     def stage_transfer_function(self) -> TransferFunction:
         """Eq. (3) $F_s/x_a$ as printed in the paper (numerator and denominator polynomials in s)."""
         kp, ks, ke, me, ce = self.k_p, self.k_s, self.k_e, self.m_e, self.c_e

@@ -1,10 +1,12 @@
 """Paper 002 (Chen & Li 2014): displacement and force from the sensor layer of a smart piezo stack."""
 
+from collections.abc import Mapping
 from typing import ClassVar
 
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import PiezojaxValueError
 from .._circuits.base import (
     check_positive_param,
     check_scalar_param,
@@ -65,6 +67,21 @@ class SensorLayerObserver(AbstractObserver):
         """The paper's eq. (9): the same observer with $p_c = 0$."""
         return eqx.tree_at(lambda o: o.crosstalk, self, self.crosstalk * 0)
 
+    def _estimate(self, v_in, v_out):
+        force = self.amplifier_capacitance / self.d33 * (v_out - self.crosstalk * v_in)
+        return force * (self.k_p + self.k_s) / (self.k_p * self.k_s) + self.offset, force
+
+    def init(self) -> tuple[()]:
+        """The observer as a cell for `pj.closed_loop`: it is static, so its state is empty."""
+        return ()
+
+    def step(self, state: tuple[()], channels: Mapping[str, Array]) -> tuple[tuple[()], Array]:
+        r"""The displacement estimate $\hat x_a$ [m] from one sample of the channels `v_in` and `v_out`."""
+        missing = [c for c in ("v_in", "v_out") if c not in channels]
+        if missing:
+            raise PiezojaxValueError(f"the sensor-layer observer needs the channels {missing}, got {sorted(channels)}")
+        return state, self._estimate(channels["v_in"], channels["v_out"])[0]
+
     def __call__(self, v_in: SignalLike, v_out: SignalLike, dt: ArrayLike = 1.0) -> Estimate:
         r"""Estimates from the actuator drive `v_in` ($V_a$) and sensor voltage `v_out` ($V_s$), same length.
 
@@ -73,6 +90,5 @@ class SensorLayerObserver(AbstractObserver):
         **Returns:** an `Estimate` with `displacement` $\hat x_a$ + `offset` [m] and `force` $\hat F_s$ [N].
         """
         m, dt, s = prepare(self, dt, v_in=v_in, v_out=v_out)
-        force = m.amplifier_capacitance / m.d33 * (s["v_out"] - m.crosstalk * s["v_in"])
-        displacement = force * (m.k_p + m.k_s) / (m.k_p * m.k_s)
-        return Estimate(displacement=displacement + m.offset, force=force)
+        displacement, force = m._estimate(s["v_in"], s["v_out"])
+        return Estimate(displacement=displacement, force=force)

@@ -1,0 +1,37 @@
+"""The one-hidden-layer network of paper 002 (eq. 13–16), shared by the NARX model and the adaptive controller."""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, PRNGKeyArray
+
+from .._checks import PiezojaxValueError
+
+
+def logsig(z: Array) -> Array:
+    r"""The log-sigmoid $g(z) = 1/(1 + e^{-z})$ of eq. (13)."""
+    return jax.nn.sigmoid(z)
+
+
+def forward(params: tuple[Array, Array, Array, Array], z: Array) -> tuple[Array, Array]:
+    r"""Hidden outputs $O_j = g(\sum_i \omega_{ij} z_i + c_j)$ (eq. 15) and the linear output
+    $\sum_j \omega_j O_j + b$ (eq. 16), for `params = (W (P, n), c (P,), w (P,), b ())`."""
+    W, c, w, b = params
+    hidden = logsig(W @ z + c)
+    return hidden, jnp.dot(w, hidden) + b
+
+
+def random_hidden_layer(key: PRNGKeyArray, hidden: int, inputs: int, dtype) -> tuple[Array, Array]:
+    """Hidden weights $\\sim N(0, 1/n)$ and biases $\\sim N(0, 1)$ for $n$ normalised inputs."""
+    if not isinstance(hidden, int) or hidden < 1:
+        raise PiezojaxValueError(f"`hidden` must be a positive int, got {hidden!r}")
+    kw, kc = jax.random.split(key)
+    W = jax.random.normal(kw, (hidden, inputs), dtype) / jnp.sqrt(jnp.asarray(inputs, dtype))
+    return W, jax.random.normal(kc, (hidden,), dtype)
+
+
+def lagged(s: Array, lags: range) -> Array:
+    """Columns $s_{k-j}$ for $j$ in `lags`, shape `(time, len(lags))`; before the record, $s_{k<0} = s_0$."""
+    n = s.shape[0]
+    cols = [s if j == 0 else jnp.concatenate([jnp.full((min(j, n),), s[0], s.dtype), s[: max(n - j, 0)]])
+            for j in lags]
+    return jnp.stack(cols, axis=1) if cols else jnp.zeros((n, 0), s.dtype)
