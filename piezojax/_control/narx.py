@@ -116,6 +116,22 @@ class NarxNetwork(eqx.Module):
         z = m.regressors(x, y)
         return m.output_offset + m.output_scale * jax.vmap(lambda zk: forward(m.params, zk)[1])(z)
 
+    def fit_output_layer(self, x: SignalLike, y: SignalLike, ridge: float = 1e-8) -> "NarxNetwork":
+        r"""A start for training: the output weights $(\omega_j, b)$ by linear least squares on the one-step
+        regression $\tilde y_k \approx \sum_j \omega_j O_j(z_k) + b$ of the measured `x`, `y` (ridge `ridge`,
+        relative), the hidden layer kept as it is.
+
+        **Returns:** the model with the fitted output layer.
+        """
+        m, (x, y) = self._prepare(x, y)
+        dtype = m.output_scale.dtype
+        hidden = jax.nn.sigmoid(m.regressors(x, y) @ m.hidden_weights.T + m.hidden_bias)
+        A = jnp.concatenate([hidden, jnp.ones((hidden.shape[0], 1), dtype)], axis=1)
+        target = (y - m.output_offset) / m.output_scale
+        lam = ridge * jnp.trace(A.T @ A) / A.shape[1]
+        sol = jnp.linalg.solve(A.T @ A + lam * jnp.eye(A.shape[1], dtype=dtype), A.T @ target)
+        return eqx.tree_at(lambda n: (n.output_weights, n.output_bias), m, (sol[:-1], sol[-1]))
+
     def init(self, y0: ArrayLike | None = None, x0: ArrayLike | None = None) -> tuple[Array, Array]:
         """The state `(past outputs (n_y,), past inputs (d + n_x,))`, at rest at `y0`, `x0` (default the
         offsets)."""
