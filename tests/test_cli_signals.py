@@ -81,6 +81,12 @@ def test_signals_at_every_phase(setup, phase):
         out = d / f"out_{phase.replace(' ', '_')}_{k}"
         rc, err = _trial(d, env, out, phase, signum, rng)
         where = f"{phase} trial {k} ({signal.Signals(signum).name}): rc {rc}\n{err}"
+        if phase == "imports" and rc == -signum:
+            # the signal came while the interpreter was still starting, before any project code (a loaded 2-core
+            # machine can take longer than the shortest delay): the default action killed it, and nothing was written
+            assert not out.exists() and not [p.name for p in d.iterdir() if ".tmp-" in p.name], where
+            outcomes.append((128 + signum, False))
+            continue
         assert rc in (0, 1, 128 + signum), where  # 0/1: it finished before the signal arrived
         for bad in ("Traceback", "Fatal Python error", "Exception ignored", "Segmentation"):
             assert bad not in err, where
