@@ -125,7 +125,7 @@ def _adaptive_by_hand(W, c, w, b, eta, alpha, u0, su, y0, sy, n_y, n_r, r, y):
         else:
             ys, rs = [yn] * n_y, [rn] * n_r
         X = np.array(ys + rs)
-        O = g(W @ X + c)  # eq. (15)
+        O = g(W @ X + c)  # noqa: E741  eq. (15)
         us.append(u0 + su * (w @ O + b))  # eq. (16)
         X_prev, O_prev = X, O
     return np.array(us), (W, c, w, b)

@@ -9,7 +9,7 @@ from .._checks import PiezojaxValueError, as_parameter_array, check_signal, chec
 from .._dtypes import module_float_dtype
 from .._parametrisation import setting
 from .base import AbstractController
-from .network import forward, lagged, random_hidden_layer
+from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
 class AdaptiveInverseController(AbstractController):
@@ -180,9 +180,6 @@ class AdaptiveInverseController(AbstractController):
         x = jnp.concatenate([lagged(yn[:-1], range(self.measurement_lags)),
                              lagged(yn[1:], range(self.reference_lags))], axis=1)
         W, c = self.hidden_weights.astype(dtype), self.hidden_bias.astype(dtype)
-        hidden = jax.nn.sigmoid(x @ W.T + c)
-        A = jnp.concatenate([hidden, jnp.ones((hidden.shape[0], 1), dtype)], axis=1)
-        target = (u[:-1] - self.offset) / self.command_scale
-        lam = ridge * jnp.trace(A.T @ A) / A.shape[1]
-        sol = jnp.linalg.solve(A.T @ A + lam * jnp.eye(A.shape[1], dtype=dtype), A.T @ target)
-        return eqx.tree_at(lambda m: (m.output_weights, m.output_bias), self, (sol[:-1], sol[-1]))
+        hidden = logsig(x @ W.T + c)
+        layer = output_layer_least_squares(hidden, (u[:-1] - self.offset) / self.command_scale, ridge)
+        return eqx.tree_at(lambda m: (m.output_weights, m.output_bias), self, layer)

@@ -9,7 +9,7 @@ from .._checks import PiezojaxValueError, as_parameter_array, check_signal, chec
 from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 from .._parametrisation import setting
-from .network import forward, lagged, random_hidden_layer
+from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
 class NarxNetwork(eqx.Module):
@@ -124,13 +124,9 @@ class NarxNetwork(eqx.Module):
         **Returns:** the model with the fitted output layer.
         """
         m, (x, y) = self._prepare(x, y)
-        dtype = m.output_scale.dtype
-        hidden = jax.nn.sigmoid(m.regressors(x, y) @ m.hidden_weights.T + m.hidden_bias)
-        A = jnp.concatenate([hidden, jnp.ones((hidden.shape[0], 1), dtype)], axis=1)
-        target = (y - m.output_offset) / m.output_scale
-        lam = ridge * jnp.trace(A.T @ A) / A.shape[1]
-        sol = jnp.linalg.solve(A.T @ A + lam * jnp.eye(A.shape[1], dtype=dtype), A.T @ target)
-        return eqx.tree_at(lambda n: (n.output_weights, n.output_bias), m, (sol[:-1], sol[-1]))
+        hidden = logsig(m.regressors(x, y) @ m.hidden_weights.T + m.hidden_bias)
+        layer = output_layer_least_squares(hidden, (y - m.output_offset) / m.output_scale, ridge)
+        return eqx.tree_at(lambda n: (n.output_weights, n.output_bias), m, layer)
 
     def init(self, y0: ArrayLike | None = None, x0: ArrayLike | None = None) -> tuple[Array, Array]:
         """The state `(past outputs (n_y,), past inputs (d + n_x,))`, at rest at `y0`, `x0` (default the

@@ -35,3 +35,13 @@ def lagged(s: Array, lags: range) -> Array:
     cols = [s if j == 0 else jnp.concatenate([jnp.full((min(j, n),), s[0], s.dtype), s[: max(n - j, 0)]])
             for j in lags]
     return jnp.stack(cols, axis=1) if cols else jnp.zeros((n, 0), s.dtype)
+
+
+def output_layer_least_squares(hidden: Array, target: Array, ridge: float) -> tuple[Array, Array]:
+    r"""Output weights and bias $(\omega, b)$ minimising $\|O\omega + b - t\|^2 + \lambda\|(\omega, b)\|^2$ for hidden
+    outputs `hidden` (time, P) and `target` (time,), with $\lambda$ = `ridge` × the mean diagonal of the normal
+    matrix."""
+    A = jnp.concatenate([hidden, jnp.ones((hidden.shape[0], 1), hidden.dtype)], axis=1)
+    lam = ridge * jnp.trace(A.T @ A) / A.shape[1]
+    sol = jnp.linalg.solve(A.T @ A + lam * jnp.eye(A.shape[1], dtype=A.dtype), A.T @ target)
+    return sol[:-1], sol[-1]
