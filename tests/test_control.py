@@ -67,6 +67,20 @@ def test_closed_loop_matches_a_hand_written_loop():
     assert truth.max() - 3.0 < 0.5 * (truth_windup.max() - 3.0), (truth.max(), truth_windup.max())
 
 
+def test_closed_loop_preview_feeds_the_controller_the_reference_ahead():
+    rng = np.random.default_rng(1)
+    r = np.cumsum(rng.standard_normal(40))
+    pid = pj.PID(0.4, 30.0, dt=0.01)
+    rec = pj.closed_loop(pid, _plant(), r, preview=3)
+    ahead = np.concatenate([r[3:], np.full(3, r[-1])])
+    np.testing.assert_allclose(rec.control, pj.closed_loop(pid, _plant(), ahead).control, rtol=1e-12)
+    np.testing.assert_array_equal(rec.reference, r)  # the record stays aligned with r_k
+    long = pj.closed_loop(pid, _plant(), r[:2], preview=5)  # a preview longer than the reference holds its end
+    np.testing.assert_allclose(long.control, pj.closed_loop(pid, _plant(), np.full(2, r[1])).control, rtol=1e-12)
+    with pytest.raises(pj.PiezojaxValueError, match="preview"):
+        pj.closed_loop(pid, _plant(), r, preview=-1)
+
+
 def test_closed_loop_vmaps_and_jits_over_controllers_and_references():
     r = jnp.stack([jnp.ones(50), 2 * jnp.ones(50)])
     gains = jnp.asarray([10.0, 20.0])
@@ -102,8 +116,9 @@ def test_gradient_through_the_closed_loop_matches_finite_differences():
     assert np.all(np.isfinite(g)) and np.all(g != 0)
 
 
-def _adaptive_by_hand(W, c, w, b, eta, alpha, u0, su, y0, sy, n_y, n_r, r, y):
-    """Paper 002's eq. (12)-(19), written out sample by sample (our index reading, see the class docstring)."""
+def _adaptive_by_hand(W, c, w, b, eta, alpha, u0, su, y0, sy, n_y, n_r, r, y, preview=0):
+    """Paper 002's eq. (12)-(19), written out sample by sample (our index reading, see the class docstring); with
+    a preview p the reference read at k is aimed at k + p, so the error compares y_k with the one read at k - p."""
     g = lambda z: 1 / (1 + np.exp(-z))  # noqa: E731
     W, c, w, b = W.copy(), c.copy(), w.copy(), float(b)
     dW, dc, dw, db = np.zeros_like(W), np.zeros_like(c), np.zeros_like(w), 0.0
@@ -113,7 +128,7 @@ def _adaptive_by_hand(W, c, w, b, eta, alpha, u0, su, y0, sy, n_y, n_r, r, y):
     for k in range(len(r)):
         yn, rn = (y[k] - y0) / sy, (r[k] - y0) / sy
         if k > 0:
-            e = rn - yn  # eq. (17)
+            e = (r[max(k - preview, 0)] - y0) / sy - yn  # eq. (17)
             w_old = w.copy()
             dw = eta * e * O_prev + alpha * dw  # eq. (18)
             db = eta * e + alpha * db
@@ -131,19 +146,20 @@ def _adaptive_by_hand(W, c, w, b, eta, alpha, u0, su, y0, sy, n_y, n_r, r, y):
     return np.array(us), (W, c, w, b)
 
 
-def test_adaptive_update_matches_equations_18_19_written_out():
+@pytest.mark.parametrize("preview", [0, 2])
+def test_adaptive_update_matches_equations_18_19_written_out(preview):
     rng = np.random.default_rng(3)
     n = 60
     r = 1e-6 * np.sin(np.arange(n) / 5)
     y = 1e-6 * np.sin((np.arange(n) - 1.5) / 5) + 1e-8 * rng.standard_normal(n)
     aic = pj.AdaptiveInverseController(jax.random.key(2), hidden=5, measurement_lags=2, reference_lags=3,
                                        learning_rate=0.3, momentum=0.6, offset=100.0, command_scale=40.0,
-                                       output_offset=1e-7, output_scale=2e-6)
+                                       output_offset=1e-7, output_scale=2e-6, preview=preview)
     aic = eqx.tree_at(lambda m: (m.output_weights, m.output_bias), aic,
                       (jnp.asarray(rng.standard_normal(5)), jnp.asarray(0.1)))
     u = aic(r, y)
     params = [np.asarray(p) for p in aic.params]
-    u_ref, final = _adaptive_by_hand(*params, 0.3, 0.6, 100.0, 40.0, 1e-7, 2e-6, 2, 3, r, y)
+    u_ref, final = _adaptive_by_hand(*params, 0.3, 0.6, 100.0, 40.0, 1e-7, 2e-6, 2, 3, r, y, preview)
     np.testing.assert_allclose(u, u_ref, rtol=1e-12)
     state = aic.init()
     for k in range(n):
@@ -225,3 +241,23 @@ def test_control_bad_input():
         pj.NarxNetwork(jax.random.key(0), hidden=3, output_lags=1, input_lags=0)
     with pytest.raises(pj.PiezojaxValueError, match="inverse"):
         pj.InverseFeedforward(lambda y: y)
+
+
+def test_adaptive_offline_start_fits_the_inverse_the_preview_aims_at():
+    # a plant that is a gain behind two samples of delay: y_{k+2} = 0.5 (u_k - 100); with preview=2 the network reads
+    # r_{k+2} and its offline start is the exact inverse, with preview=1 it must guess u_k from y_{k+1}
+    rng = np.random.default_rng(5)
+    n = 800
+    u = 100 + np.convolve(rng.standard_normal(n + 40), np.ones(40) / 4, mode="valid")[:n]
+    y = np.concatenate([np.zeros(2), 0.5e-6 * (u[:-2] - 100)])
+    errors = {}
+    for preview in (1, 2):
+        aic = pj.AdaptiveInverseController(jax.random.key(1), hidden=8, measurement_lags=0, reference_lags=1,
+                                           offset=100.0, command_scale=10.0, output_scale=5e-6, preview=preview)
+        aic = aic.fit_output_layer(y, u)
+        ahead = np.concatenate([y[preview:], np.full(preview, y[-1])])  # what the loop's preview reads
+        u_hat = np.asarray(aic(ahead, y))
+        errors[preview] = np.sqrt(np.mean((u_hat - u)[10:-10] ** 2)) / np.std(u)
+    assert errors[2] < 0.02 < errors[1], errors
+    with pytest.raises(pj.PiezojaxValueError, match="preview"):
+        pj.AdaptiveInverseController(jax.random.key(1), hidden=2, preview=-1)

@@ -47,11 +47,16 @@ class AdaptiveInverseController(AbstractController):
     - `offset` $u_0$ and `command_scale` $s_u > 0$ [command units]; `output_offset` $y_0$ and `output_scale`
       $s_y > 0$ [measurement units].
     - `u_min`, `u_max`: command limits (default unbounded).
+    - `preview`: $p \ge 0$, the `preview` of the `pj.closed_loop` this controller runs in: the reference read at
+      step $k$ is then $r_{k+p}$, and the error of eq. (17) compares $y_k$ with the reference read $p$ steps
+      earlier (the one aimed at instant $k$). Use `preview=1` with `pj.closed_loop(..., preview=1)`: the command
+      $u_k$ shows in the measurement at $k+1$, so the network then reads the reference it is to reach (and
+      `fit_output_layer` fits exactly that map); with 0 it aims one sample late.
 
     ```python
     aic = pj.AdaptiveInverseController(jax.random.key(0), hidden=8, learning_rate=0.05, momentum=0.5,
-                                       offset=100.0, command_scale=50.0, output_scale=3e-6)
-    rec = pj.closed_loop(aic, plant, reference, observer=observer)
+                                       offset=100.0, command_scale=50.0, output_scale=3e-6, preview=1)
+    rec = pj.closed_loop(aic, plant, reference, observer=observer, preview=1)
     ```
     """
 
@@ -69,6 +74,7 @@ class AdaptiveInverseController(AbstractController):
     u_max: Float[Array, ""] = setting()
     measurement_lags: int = eqx.field(static=True)
     reference_lags: int = eqx.field(static=True)
+    preview: int = eqx.field(static=True)
 
     def __init__(
         self,
@@ -85,11 +91,13 @@ class AdaptiveInverseController(AbstractController):
         output_scale: ArrayLike = 1.0,
         u_min: ArrayLike = -jnp.inf,
         u_max: ArrayLike = jnp.inf,
+        preview: int = 0,
     ):
-        for name, value, least in (("measurement_lags", measurement_lags, 0), ("reference_lags", reference_lags, 1)):
-            if not isinstance(value, int) or value < least:
+        for name, value, least in (("measurement_lags", measurement_lags, 0), ("reference_lags", reference_lags, 1),
+                                   ("preview", preview, 0)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < least:
                 raise PiezojaxValueError(f"`{name}` must be an int >= {least}, got {value!r}")
-        self.measurement_lags, self.reference_lags = measurement_lags, reference_lags
+        self.measurement_lags, self.reference_lags, self.preview = measurement_lags, reference_lags, preview
         self.learning_rate = check_value(as_parameter_array(learning_rate, "learning_rate"), lambda a: a >= 0,
                                          "`learning_rate` must be >= 0")
         self.momentum = check_value(as_parameter_array(momentum, "momentum"), lambda a: (a >= 0) & (a < 1),
@@ -119,7 +127,7 @@ class AdaptiveInverseController(AbstractController):
         return (y - self.output_offset) / self.output_scale
 
     def init(self):
-        """The state `(weights, last weight change, past y, past r, X_{k-1}, O_{k-1}, started)`."""
+        """The state `(weights, last weight change, past y, past r, X_{k-1}, O_{k-1}, started, targets)`."""
         dtype = self.output_scale.dtype
         n_in = self.measurement_lags + self.reference_lags
         params = self.params
@@ -131,15 +139,20 @@ class AdaptiveInverseController(AbstractController):
             jnp.zeros((n_in,), dtype),
             jnp.zeros(self.hidden_bias.shape, dtype),
             jnp.zeros((), dtype),
+            jnp.zeros((self.preview,), dtype),
         )
 
     def step(self, state, reference, measurement):
-        params, delta, ys, rs, x_prev, o_prev, started = state
+        params, delta, ys, rs, x_prev, o_prev, started, targets = state
         W, c, w, b = params
         yn, rn = self._normalise(measurement), self._normalise(reference)
+        # the reference read `preview` samples ago is the one the measurement of this instant is compared with
+        targets = jnp.where(started > 0, targets, jnp.full_like(targets, rn))
+        target = targets[-1] if self.preview else rn
+        targets = jnp.concatenate([rn[None], targets[:-1]]) if self.preview else targets
         # eq. (17)–(19): the error of the previous command's result, back-propagated through the network that
         # produced it (the weights of step k-1, its inputs and hidden outputs); nothing to learn at the first step.
-        e = started * (rn - yn)
+        e = started * (target - yn)
         slope = o_prev * (1 - o_prev)
         grad_w, grad_b = e * o_prev, e
         grad_c = e * w * slope
@@ -155,7 +168,7 @@ class AdaptiveInverseController(AbstractController):
         x = jnp.concatenate([ys, rs])
         hidden, out = forward(params, x)
         u = jnp.clip(self.offset + self.command_scale * out, self.u_min, self.u_max)
-        return (params, delta, ys, rs, x, hidden, jnp.ones_like(started)), u
+        return (params, delta, ys, rs, x, hidden, jnp.ones_like(started), targets), u
 
     def fit_output_layer(
         self, measurement: ArrayLike, command: ArrayLike, ridge: float = 1e-6
@@ -163,7 +176,10 @@ class AdaptiveInverseController(AbstractController):
         r"""An offline start from an open-loop record: the output weights $(\omega_j, b)$ by linear least squares
         (ridge `ridge`, relative), so that the network maps $X_k$ built from the record to the command that
         produced the next measurement: $u_k \approx u_0 + s_u(\sum_j \omega_j O_j(X_k) + b)$ with the references
-        $r$ replaced by the measured $y_{k+1}$ (direct inverse learning). The hidden layer stays random.
+        newest reference replaced by the measured $y_{k+s}$, $s = \max(p, 1)$ with $p$ = `preview`, and the older
+        ones by $y_{k+s-1}, \ldots$ (direct inverse learning). With `preview=1` this is the inverse the loop uses
+        (the network reads $r_{k+1}$ to command $u_k$); with `preview=0` the loop feeds it $r_k$, one sample
+        late. The hidden layer stays random.
 
         **Arguments:** `measurement` $y_k$ and `command` $u_k$ (same length, $y_{k+1}$ the response to $u_k$).
 
@@ -176,10 +192,14 @@ class AdaptiveInverseController(AbstractController):
             raise PiezojaxValueError(
                 f"`measurement` and `command` must have the same length >= 3, got {y.shape} and {u.shape}"
             )
+        shift = max(self.preview, 1)
+        if y.shape[0] < shift + 3:
+            raise PiezojaxValueError(f"the record must be longer than `preview` + 2 samples, got {y.shape[0]}")
         yn = self._normalise(y)
-        x = jnp.concatenate([lagged(yn[:-1], range(self.measurement_lags)),
-                             lagged(yn[1:], range(self.reference_lags))], axis=1)
+        n = y.shape[0] - shift
+        x = jnp.concatenate([lagged(yn[:n], range(self.measurement_lags)),
+                             lagged(yn[shift:], range(self.reference_lags))], axis=1)
         W, c = self.hidden_weights.astype(dtype), self.hidden_bias.astype(dtype)
         hidden = logsig(x @ W.T + c)
-        layer = output_layer_least_squares(hidden, (u[:-1] - self.offset) / self.command_scale, ridge)
+        layer = output_layer_least_squares(hidden, (u[:n] - self.offset) / self.command_scale, ridge)
         return eqx.tree_at(lambda m: (m.output_weights, m.output_bias), self, layer)

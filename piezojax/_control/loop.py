@@ -37,6 +37,7 @@ def closed_loop(
     observer: Any = None,
     feedback: str = "displacement",
     noise: PyTree[ArrayLike] | None = None,
+    preview: int = 0,
 ) -> LoopRecord:
     r"""Simulate the sampled loop plant → observer → controller, one `jax.lax.scan` over the reference.
 
@@ -58,6 +59,11 @@ def closed_loop(
     - `feedback`: the channel fed back when `observer` is None (default `"displacement"`).
     - `noise`: the exogenous samples $w_k$ the plant's `output` reads (leaves with a leading time axis of the
       reference's length), or None.
+    - `preview`: $p \ge 0$; the controller reads $r_{k+p}$ instead of $r_k$ (the last sample held past the
+      end), for references known in advance. The command $u_k$ first shows in the feedback at $k+1$, so a
+      feedforward that reads $r_k$ aims one sample late (on a ramp of slope $s$, a lag of $s\,\Delta t$);
+      `preview=1` aims it at the instant it acts. The record's `reference` and the tracking error stay aligned
+      with $r_k$.
 
     **Returns:** a `LoopRecord`.
 
@@ -76,8 +82,12 @@ def closed_loop(
         raise PiezojaxValueError(
             f"`observer` must be a cell with init() and step(state, channels), got {type(observer).__name__}"
         )
+    if not isinstance(preview, int) or isinstance(preview, bool) or preview < 0:
+        raise PiezojaxValueError(f"`preview` must be an int >= 0, got {preview!r}")
     dtype = module_float_dtype((controller, plant, observer), reference)
     r = check_signal(reference, "reference", dtype)
+    held = jnp.broadcast_to(r[-1], (min(preview, r.shape[0]),))
+    r_read = r if preview == 0 else jnp.concatenate([r[preview:], held])
     w = as_time_major(noise, r.shape[0], "noise", dtype)
     ctrl, plant = cast_module(controller, dtype), cast_module(plant, dtype)
     obs = None if observer is None else cast_module(observer, dtype)
@@ -93,7 +103,7 @@ def closed_loop(
         return (plant.step(p_state, u), o_state, c_state), (u, y_hat, channels)
 
     init = (plant.init(), None if obs is None else obs.init(), ctrl.init())
-    _, (u, y_hat, channels) = jax.lax.scan(body, init, (r, w))
+    _, (u, y_hat, channels) = jax.lax.scan(body, init, (r_read, w))
     return LoopRecord(reference=r, control=u, feedback=y_hat, channels=channels)
 
 
