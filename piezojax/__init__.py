@@ -4,6 +4,7 @@ from ._actuator import (
     Actuator as Actuator,
     ActuatorOutput as ActuatorOutput,
 )
+from ._actuator_inverse import ActuatorInverse as ActuatorInverse
 from ._benches.bafumba import (
     BafumbaBench as BafumbaBench,
     unimorph_dynamics as unimorph_dynamics,
@@ -48,6 +49,7 @@ from ._hysteresis.initialise import (
     pi_cold_start as pi_cold_start,
     pi_weights_least_squares as pi_weights_least_squares,
 )
+from ._hysteresis.inverse import HysteresisInverse as HysteresisInverse
 from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip
 from ._hysteresis.play import (
     PlayOperator as PlayOperator,

@@ -1,5 +1,7 @@
 """The composed piezoelectric actuator: voltage → hysteresis → creep → dynamics → displacement, plus its charge."""
 
+from typing import TYPE_CHECKING
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -12,6 +14,9 @@ from ._custom_types import Signal, SignalLike
 from ._dtypes import cast_module, module_float_dtype
 from ._hysteresis.base import AbstractHysteresis
 from ._linear.base import AbstractLinearSystem
+
+if TYPE_CHECKING:
+    from ._actuator_inverse import ActuatorInverse
 
 _STRUCTURES = ("parallel", "series")
 
@@ -207,6 +212,43 @@ class Actuator(eqx.Module):
     def __call__(self, v_in: SignalLike, dt: ArrayLike, hold: str = "zoh") -> ActuatorOutput:
         """Same as `simulate`."""
         return self.simulate(v_in, dt, hold)
+
+    def inverse(
+        self,
+        lower: ArrayLike | None = None,
+        upper: ArrayLike | None = None,
+        *,
+        bandwidth: ArrayLike | None = None,
+        relative_degree: int | None = None,
+        iterations: int = 20,
+        preview: bool = True,
+        max_iterations: int = 100,
+    ) -> "ActuatorInverse":
+        r"""The whole-actuator inverse for open-loop feedforward: `inv(delta_d, dt)` is the voltage whose simulated
+        displacement follows `delta_d` (see `ActuatorInverse` for the method and its accuracy).
+
+        **Arguments:**
+
+        - `lower`, `upper`: the admissible voltage range [V]; both or neither. With them the hysteresis is inverted
+          by per-sample root finding that saturates there; without, the analytic inverse where the operator has
+          one (`PrandtlIshlinskii`, e.g. `MaxwellSlip.as_prandtl_ishlinskii(...)`), else a `PiezojaxValueError`.
+        - `bandwidth`: $\omega_f$ [rad/s] of the low-pass that makes the dynamics' inverse proper (default: the
+          fastest pole of the dynamics; see `AbstractLinearSystem.inverse`).
+        - `relative_degree`: the dynamics' relative degree (default: computed; give it to build under `jit`).
+        - `iterations`: fixed-point iterations through the creep (default 20).
+        - `preview`: read the reference ahead by the low-pass's delay (default True).
+        - `max_iterations`: root-finding iterations per sample at most.
+
+        **Returns:** an `ActuatorInverse`.
+
+        ```python
+        inv = actuator.inverse(lower=0.0, upper=150.0)
+        v = inv(delta_desired, dt)               # actuator.simulate(v, dt).displacement ~ delta_desired
+        ```
+        """
+        from ._actuator_inverse import actuator_inverse
+
+        return actuator_inverse(self, lower, upper, bandwidth, relative_degree, iterations, preview, max_iterations)
 
     # -------------------------------------------------------------------------------------------------------------
 

@@ -9,7 +9,7 @@ import jax.tree_util as jtu
 from jaxtyping import Array, PyTree
 
 from .._checks import check_signal
-from .._custom_types import Signal, SignalLike
+from .._custom_types import ScalarLike, Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 
 
@@ -82,6 +82,27 @@ class AbstractHysteresis(eqx.Module):
     def __call__(self, signal: SignalLike, state: PyTree[Array] | None = None) -> Signal:
         """Apply the operator to a 1-D `signal` (see `scan`) and return the output signal."""
         return self.scan(signal, state)[1]
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> "AbstractHysteresis":
+        r"""The inverse operator $\mathcal{H}^{-1}$, for feedforward compensation: `self(inverse(y)) == y`.
+
+        Default: per-sample root finding on the admissible input range (`HysteresisInverse`, whose docstring gives
+        the conditions, the accuracy and the derivatives). Operators with an analytic inverse override this
+        (`PrandtlIshlinskii.inverse()` without bounds).
+
+        **Arguments:**
+
+        - `lower`, `upper`: the admissible input range (finite, `lower < upper`); outputs out of reach saturate at
+          these inputs. Needed here (`PiezojaxValueError` naming them if missing).
+        - `max_iterations`: root-finding iterations per sample at most.
+
+        **Returns:** an `AbstractHysteresis` mapping the desired output to the input.
+        """
+        from .inverse import HysteresisInverse
+
+        return HysteresisInverse(self, lower, upper, max_iterations)
 
     def _unroll(self) -> int:
         # Measured on XLA:CPU (jax 0.10.2): unroll=1 is fastest for these small cells (unrolling slows them).

@@ -4,12 +4,13 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._checks import PiezojaxValueError, check_positive, check_vector
+from .._checks import PiezojaxValueError, check_positive, check_scalar, check_vector
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
 from .base import AbstractHysteresis
 from .play import check_smoothing, error_if_bad_smoothing, run_exact_or_smooth, stop_update
+from .prandtl_ishlinskii import PrandtlIshlinskii
 
 
 class MaxwellSlip(AbstractHysteresis):
@@ -91,6 +92,28 @@ class MaxwellSlip(AbstractHysteresis):
     def thresholds(self) -> Array:
         r"""The input thresholds $r_i = f_i / k_i$ (displacement, or charge $C_i v_i$) at which each element slips."""
         return self.breakaway / self.stiffness
+
+    def as_prandtl_ishlinskii(self, linear: ScalarLike = 0.0) -> PrandtlIshlinskii:
+        r"""The same operator plus a linear term, $\ell x + F[x]$, as a `PrandtlIshlinskii` (exact form only).
+
+        $F = \sum_i k_i S_{r_i}[x] = (\sum_i k_i)\,x - \sum_i k_i P_{r_i}[x]$ (stop = input − play), so the PI form
+        has $w_0 = \ell + \sum_i k_i$, weights $-k_i$ and thresholds $r_i = f_i/k_i$, sorted ascending. It gives
+        the analytic inverse (paper 003 inverts the electrical model, where the linear capacitance $C$ adds
+        $\ell = 1/C$ to $V_H(q)$: $V = q/C + V_H(q)$):
+        `ms.as_prandtl_ishlinskii(linear).inverse()`. That inverse needs $\ell > 0$ (alone, the Maxwell slip
+        saturates at $\sum_i f_i$ and has no inverse beyond it: use `inverse(lower, upper)`), distinct thresholds
+        (elements with equal $f_i/k_i$ must be merged: PI thresholds are strictly ascending) and `smoothing` = 0.
+
+        **Arguments:**
+
+        - `linear`: $\ell$, a finite scalar (default 0).
+
+        **Returns:** the `PrandtlIshlinskii` operator, equal to `linear * x + self(x)` for every input.
+        """
+        linear = check_scalar(linear, "linear", self.stiffness.dtype)
+        order = jnp.argsort(self.thresholds)
+        k = self.stiffness[order]
+        return PrandtlIshlinskii(-k, self.thresholds[order], w0=linear + jnp.sum(k), smoothing=self.smoothing)
 
     def check(self) -> "MaxwellSlip":
         k, f = check_positive(self.stiffness, "stiffness"), check_positive(self.breakaway, "breakaway", allow_zero=True)

@@ -18,6 +18,7 @@ from .._checks import (
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
+from .base import AbstractHysteresis
 from .play import (
     _AbstractStopCell,
     _tangent_or_none,
@@ -206,8 +207,13 @@ class PrandtlIshlinskii(_AbstractStopCell):
         v = as_float_array(v, "v", self.thresholds.dtype)
         return self.w0 * v + jnp.sum(self.weights * jnp.maximum(v[..., None] - self.thresholds, 0), axis=-1)
 
-    def inverse(self) -> "PrandtlIshlinskii":
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> "AbstractHysteresis":
         r"""The analytic inverse operator, itself a Prandtl–Ishlinskii operator (Krasnosel'skii–Pokrovskii, Kuhnen).
+
+        With an input range (`lower`, `upper`), the bounded root-finding inverse of `AbstractHysteresis.inverse`
+        instead (outputs out of reach saturate at the bounds; any smoothing); without, the analytic one below.
 
         With $w_0$ the weight of a play at $r_0 = 0$ and slopes $a_j = w_0 + \sum_{i \leq j} w_i$ of the loading curve,
         the inverse has the inverse loading curve, i.e. thresholds and weights
@@ -226,6 +232,8 @@ class PrandtlIshlinskii(_AbstractStopCell):
         v = pi.inverse()(y_desired)  # feedforward compensation: pi(v) == y_desired
         ```
         """
+        if lower is not None or upper is not None:
+            return super().inverse(lower, upper, max_iterations=max_iterations)
         w0, w, r, s = self.w0, self.weights, self.thresholds, self.smoothing
         slopes = w0 + jnp.cumsum(w)  # a_1 .. a_n
         slopes_prev = jnp.concatenate([w0[None], slopes[:-1]])  # a_0 .. a_{n-1}

@@ -1,13 +1,23 @@
 """The continuous-time SISO linear system interface."""
 
 import abc
+import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from .._checks import as_float_array, check_signal
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_positive,
+    check_scalar,
+    check_signal,
+    check_value,
+    concrete_or_none,
+)
 from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 from .discretise import DiscreteStateSpace, check_hold, discretise_state_space
@@ -132,3 +142,93 @@ class AbstractLinearSystem(eqx.Module):
     def __call__(self, u: SignalLike, dt: ArrayLike, x0: ArrayLike | None = None, hold: str = "zoh") -> Signal:
         """Same as `simulate`."""
         return self.simulate(u, dt, x0, hold)
+
+    def relative_degree(self, rtol: float = 1e-9) -> int:
+        r"""The relative degree $r$ of $G(s)$: 0 if $D \ne 0$, else the first $i$ with $C A^{i-1} B \ne 0$.
+
+        Terms are compared at the scale $\rho = \max|\lambda(A)|$ (the size of $C A^{i-1} B / s^i$ at $|s| = \rho$),
+        a term counting as zero below `rtol` times the largest. Needs concrete values (`PiezojaxValueError` under
+        `jit`: pass the degree explicitly where it is asked for).
+        """
+        A, B, C, D = (concrete_or_none(x) for x in self.state_space())
+        if any(x is None for x in (A, B, C, D)):
+            raise PiezojaxValueError(
+                "the relative degree needs concrete system values; pass `relative_degree` explicitly under jit/vmap"
+            )
+        A, B, C, D = (np.asarray(x, np.float64) for x in (A, B, C, D))
+        n = A.shape[0]
+        rho = max(float(np.max(np.abs(np.linalg.eigvals(A)))) if n else 0.0, np.finfo(np.float64).tiny)
+        terms, x = [abs(float(D))], B
+        for _ in range(n):
+            terms.append(abs(float(C @ x)))
+            x = (A @ x) / rho
+        scale = max(terms)
+        if scale == 0:
+            raise PiezojaxValueError("the system is identically zero: it has no relative degree and no inverse")
+        return next(i for i, t in enumerate(terms) if t > rtol * scale)
+
+    def inverse(
+        self, bandwidth: ArrayLike | None = None, relative_degree: int | None = None
+    ) -> "AbstractLinearSystem":
+        r"""A stable, proper inverse $F(s)/G(s)$ with a unit-DC-gain low-pass $F(s) = (\omega_f/(s + \omega_f))^r$.
+
+        $G$ of relative degree $r \ge 1$ (e.g. a resonance $K\omega^2/(s^2 + 2\zeta\omega s + \omega^2)$, $r = 2$) has
+        no proper inverse: $1/G$ differentiates $r$ times. $F/G$ is proper, and it is realised without polynomials
+        from $G$'s own realisation $(A, B, C, D)$: with $g = C A^{r-1} B$ and $p(s) = (s + \omega_f)^r = s^r + \sum_i
+        a_i s^i$, the input $u = (a_0 y_{ref} - C\,p(A)\,x)/g$ with $\dot x = A x + B u$ makes $y = C x$ obey
+        $p(d/dt)\,y = a_0 y_{ref}$, i.e. $y = F y_{ref}$ (since $y^{(i)} = C A^i x$ for $i < r$ and $y^{(r)} = C A^r x
+        + g u$). So the inverse is the `StateSpace` $A - B\,C p(A)/g$, $B a_0/g$, $-C p(A)/g$, $a_0/g$, whose poles are
+        the zeros of $G$ and $r$ poles at $-\omega_f$: stable exactly when $G$ is minimum phase (checked for
+        concrete values: `PiezojaxValueError` otherwise). For $r = 0$ it is the exact inverse ($F = 1$).
+
+        $F$ has no overshoot (critically damped) and delays slow signals by its group delay $r/\omega_f$; a
+        feedforward that knows the reference in advance removes it by preview (`Actuator.inverse` does). The
+        default $\omega_f = \max|\lambda(A)|$, the fastest pole: for a resonance, $|F/G|$ then stays below $1/K$ at
+        every frequency (the inverse cancels the resonant peak and amplifies no noise above it); a higher
+        bandwidth inverts $G$ further at the price of larger drive peaks.
+
+        **Arguments:**
+
+        - `bandwidth`: $\omega_f$ in rad/s (> 0); default the fastest pole (needs concrete values).
+        - `relative_degree`: $r$; default `relative_degree()` (needs concrete values).
+
+        **Returns:** a `StateSpace`, to `simulate` on the desired output (with `hold="foh"` for a sampled smooth
+        reference).
+        """
+        from .state_space import StateSpace
+
+        A, B, C, D = self.state_space()
+        n = A.shape[0]
+        r = self.relative_degree() if relative_degree is None else relative_degree
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not 0 <= r <= n:
+            raise PiezojaxValueError(f"`relative_degree` must be an int in [0, {n}], got {r!r}")
+        if r == 0:
+            p_a, g, a0 = jnp.eye(n, dtype=A.dtype), D, jnp.ones((), A.dtype)
+        else:
+            if bandwidth is None:
+                bandwidth = default_inverse_bandwidth(self)
+            wf = check_positive(check_scalar(bandwidth, "bandwidth", A.dtype), "bandwidth")
+            p_a, power = jnp.zeros_like(A), jnp.eye(n, dtype=A.dtype)
+            for i in range(r + 1):
+                p_a = p_a + math.comb(r, i) * wf ** (r - i) * power
+                if i == r - 1:
+                    g = C @ power @ B
+                power = power @ A
+            a0 = wf**r
+        g = check_value(g, lambda x: x != 0, f"`relative_degree` {r} does not match the system (C A^(r-1) B = 0)")
+        c_p = C @ p_a
+        inv = StateSpace(A - jnp.outer(B, c_p) / g, B * a0 / g, -c_p / g, a0 / g)
+        a_i = concrete_or_none(inv.A)
+        if a_i is not None and n and np.max(np.linalg.eigvals(np.asarray(a_i, np.float64)).real) >= 0:
+            raise PiezojaxValueError(
+                "the system has zeros with Re(s) >= 0 (non-minimum phase): its inverse is unstable"
+            )
+        return inv
+
+
+def default_inverse_bandwidth(system: AbstractLinearSystem) -> float:
+    r"""The default $\omega_f$ of `AbstractLinearSystem.inverse`: the fastest pole's magnitude $\max|\lambda(A)|$."""
+    a = concrete_or_none(system.state_space()[0])
+    if a is None:
+        raise PiezojaxValueError("pass `bandwidth` under jit/vmap (the default needs concrete values)")
+    return float(np.max(np.abs(np.linalg.eigvals(np.asarray(a, np.float64)))))
