@@ -18,8 +18,9 @@ Data: `experiments/data/piezo_150V_1Hz/hysteresis_v_150_1hz.csv` (see `experimen
 3. Each voltage drives the truth; the table gives the RMS and maximum tracking error in µm. The compensator's
    voltages show what a model error costs; the truth's own show the inversion itself (exact up to its low-pass).
 
-Run: `python -m experiments.compensation [--fits DIR] [--out results/compensation]` (about 3 min on 2 cores, mostly
-the two fits; `--fits DIR` reuses `DIR/truth` and `DIR/compensator` written earlier by this script).
+Run: `python -m experiments.compensation [--fits DIR] [--out results/compensation]` (4 min 45 s measured on 2
+cores while other work shared them: the two fits 131 s and 92 s, the study 58 s; `--fits DIR` reuses `DIR/truth`
+and `DIR/compensator` written earlier by this script).
 """
 
 import argparse
