@@ -18,14 +18,13 @@ Data: `experiments/data/piezo_150V_1Hz/hysteresis_v_150_1hz.csv` (see `experimen
 3. Each voltage drives the truth; the table gives the RMS and maximum tracking error in µm. The compensator's
    voltages show what a model error costs; the truth's own show the inversion itself (exact up to its low-pass).
 
-Run: `python -m experiments.compensation [--fits DIR] [--out results/compensation]` (4 min 45 s measured on 2
-cores while other work shared them: the two fits 131 s and 92 s, the study 58 s; `--fits DIR` reuses `DIR/truth`
-and `DIR/compensator` written earlier by this script).
+Run: `python -m experiments.compensation [--fits DIR] [--out results/compensation]` (about 3 min on 2
+cores: the two fits 80 s and 62 s, the study 24 s; `--fits DIR` reuses `DIR/truth` and `DIR/compensator` written
+earlier by this script, refitting one whose fit was interrupted).
 """
 
 import argparse
-import contextlib
-import io
+import json
 import time
 from pathlib import Path
 
@@ -46,15 +45,27 @@ AMPLITUDE = 15e-6  # m
 METHODS = ("plain gain", "hysteresis inverse", "whole-actuator inverse")
 
 
-def _cli(argv: list[str]) -> int:
-    from fitting.cli import main
+def _fit(argv: list[str]) -> None:
+    """`piezojax ARGV` in this process; an interrupted fit ends the run (exit status 130/143), a failed one raises."""
+    from fitting.cli import EXIT_INTERRUPTED, EXIT_TERMINATED
 
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        code = main(argv, _restore_signals=False)
+    from .plant_study import _cli
+
+    code, output = _cli(argv)
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED):
+        print(f"interrupted while fitting; the partial fit in {argv[argv.index('--out') + 1]} is refitted next time")
+        raise SystemExit(code)
     if code not in (0, 1):  # 1: written, but the fit's verdict is not "converged"
-        raise RuntimeError(f"piezojax {' '.join(argv)} failed ({code}):\n{buf.getvalue()[-2000:]}")
-    return code
+        raise RuntimeError(f"piezojax {' '.join(argv)} failed ({code}):\n{output[-2000:]}")
+
+
+def reusable(out: Path) -> bool:
+    """Whether `out` holds a complete fit written earlier: `model.eqx`, and a `result.json` whose code is not
+    'interrupted' (the command line saves the last accepted parameters of an interrupted fit)."""
+    try:
+        return (out / "model.eqx").exists() and json.loads((out / "result.json").read_text())["code"] != "interrupted"
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
 
 
 def fitted_models(folder: Path) -> dict[str, pj.Actuator]:
@@ -64,22 +75,28 @@ def fitted_models(folder: Path) -> dict[str, pj.Actuator]:
     models = {}
     for name, config in CONFIGS.items():
         out = folder / name
-        if not (out / "model.eqx").exists():
+        if not reusable(out):
             t0 = time.perf_counter()
             folder.mkdir(parents=True, exist_ok=True)
-            _cli(["fit", str(config), str(DATA), "--window", ":7", "--out", str(out), "--quiet", "--no-figures"])
+            again = ["--overwrite"] if out.exists() else []  # an interrupted fit of this script: refit in place
+            _fit(["fit", str(config), str(DATA), "--window", ":7", "--out", str(out), "--quiet", "--no-figures",
+                  *again])
             print(f"fitted {name} ({config.name}) in {time.perf_counter() - t0:.0f} s")
         models[name] = pj.unwrap(load_fitted(out)[1])
     return models
 
 
-def plain_gain() -> tuple[float, float]:
-    """The least-squares line x = k v + b of the measured record (t > 3.3 s, the sine) [m/V, m]."""
+def measured_sine() -> tuple[np.ndarray, np.ndarray]:
+    """Voltage [V] and displacement [m] of the measured record's sine (t > 3.3 s)."""
     exp = fitting.load_experiment(DATA, columns={"2": "t", "3": "displacement", "4": "v_in"},
                                   units={"displacement": "um"})
-    t, v, x = (np.asarray(a) for a in (exp.t, exp.v_in, exp.channels["displacement"]))
-    keep = t > 3.3
-    k, b = np.polyfit(v[keep], x[keep], 1)
+    keep = np.asarray(exp.t) > 3.3
+    return np.asarray(exp.v_in)[keep], np.asarray(exp.channels["displacement"])[keep]
+
+
+def plain_gain(v: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """The least-squares line x = k v + b [m/V, m]."""
+    k, b = np.polyfit(v, x, 1)
     return float(k), float(b)
 
 
@@ -158,10 +175,8 @@ def main(argv: list[str] | None = None) -> list:
     jax.config.update("jax_enable_x64", True)
     fits = args.fits or args.out / "fits"
     models = fitted_models(fits)
-    gain = plain_gain()
-    exp = fitting.load_experiment(DATA, columns={"2": "t", "3": "displacement", "4": "v_in"},
-                                  units={"displacement": "um"})
-    x = np.asarray(exp.channels["displacement"])[np.asarray(exp.t) > 3.3]
+    v, x = measured_sine()
+    gain = plain_gain(v, x)
     middle = 0.5 * (x.min() + x.max())
     t0 = time.perf_counter()
     rows = study(models["truth"], {"compensator": models["compensator"], "truth": models["truth"]}, gain, middle)

@@ -202,10 +202,11 @@ def actuator_inverse(
             )
     g_inv, delay = None, jnp.zeros((), dtype)
     if act.dynamics is not None:
-        g_inv = act.dynamics.inverse(bandwidth, relative_degree)
+        # degree and bandwidth resolved once, here: the delay of the low-pass is r / bandwidth
         r = act.dynamics.relative_degree() if relative_degree is None else relative_degree
+        if r > 0 and bandwidth is None:
+            bandwidth = default_inverse_bandwidth(act.dynamics)
+        g_inv = act.dynamics.inverse(bandwidth, r)
         if r > 0:
-            # the bandwidth the inverse was built with: its r fast poles sit at -bandwidth
-            wf = default_inverse_bandwidth(act.dynamics) if bandwidth is None else bandwidth
-            delay = r / jnp.asarray(wf, dtype)
+            delay = r / jnp.asarray(bandwidth, dtype)
     return ActuatorInverse(act, h_inv, h_state, g_inv, delay, lower, upper, iterations, preview)

@@ -1,6 +1,8 @@
 """`experiments.compensation` with small settings: the study on library-built actuators (the fits it runs on the
 measured record are the command line's, tested elsewhere)."""
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -32,3 +34,17 @@ def test_compensation_study_ranks_the_methods():
         assert table["truth", "hysteresis inverse", f] < table["truth", "plain gain", f]
         assert table["model", "whole-actuator inverse", f] < table["model", "plain gain", f]
     assert all(-150.0 <= r["v_min"] <= r["v_max"] <= 150.0 for r in rows)
+
+
+def test_an_interrupted_fit_is_not_reused(tmp_path):
+    """The command line saves an interrupted fit's last parameters (code 'interrupted'): the experiment refits
+    it rather than compensate with it."""
+    assert not compensation.reusable(tmp_path / "missing")
+    for code, ok in (("interrupted", False), ("not_converged", True), ("converged", True)):
+        out = tmp_path / code
+        out.mkdir()
+        (out / "model.eqx").write_bytes(b"")
+        (out / "result.json").write_text(json.dumps({"code": code}))
+        assert compensation.reusable(out) is ok
+    (tmp_path / "converged" / "result.json").write_text("{not json")
+    assert not compensation.reusable(tmp_path / "converged")
