@@ -9,8 +9,8 @@
   normal-equation form: $J^\top J$ and $J^\top r$ by forward mode at each accepted point, a chunk of experiments at
   a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN. The solvers as
   components (`AbstractNormalSolver` with `init`/`step`/`terminate`; `LevenbergMarquardt`, `TrustRegion`), the
-  outcomes `RESULTS`, progress meters (`AbstractProgressMeter`, `TextProgressMeter`, `NoProgressMeter`) and
-  `FitError` (`throw=True`).
+  outcomes `RESULTS`, progress meters (`AbstractProgressMeter`, `TextProgressMeter`, `NoProgressMeter`),
+  `FitError` (`throw=True`) and `PrecisionWarning` (a fit in single precision).
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 - Files: the submodule `fitting.files` writes files and folders completely or not at all (used by the command line
   and the experiments; not part of the calibration API above).
@@ -37,7 +37,7 @@ _EXPORTS = {
     ),
     "._problem": ("Problem", "estimate_noise_std", "free_mask", "parameter_paths"),
     "._results": ("FitResult", "error_metrics", "load_model", "load_summary"),
-    "._solve": ("fit", "set_smoothing", "solve"),
+    "._solve": ("PrecisionWarning", "fit", "set_smoothing", "solve"),
     "._solver": (
         "RESULTS", "AbstractNormalSolver", "AbstractProgressMeter", "FitError", "LevenbergMarquardt", "Linearisation",
         "NoProgressMeter", "Progress", "TextProgressMeter", "Trial", "TrustRegion", "Verdict",
@@ -107,7 +107,12 @@ if TYPE_CHECKING:  # the same names for static analysis
         load_model as load_model,
         load_summary as load_summary,
     )
-    from ._solve import fit as fit, set_smoothing as set_smoothing, solve as solve
+    from ._solve import (
+        PrecisionWarning as PrecisionWarning,
+        fit as fit,
+        set_smoothing as set_smoothing,
+        solve as solve,
+    )
     from ._solver import (
         RESULTS as RESULTS,
         AbstractNormalSolver as AbstractNormalSolver,

@@ -2,7 +2,10 @@
 restarts past kinks, to a `FitResult`."""
 
 import dataclasses
+import os
+import sys
 import time
+import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -28,6 +31,21 @@ from ._solver import (
     iterate,
 )
 from ._stationarity import descent_point, stationarity_verdict
+
+
+class PrecisionWarning(UserWarning):
+    """A fit runs in single precision (JAX's 64-bit mode is off): see `solve`."""
+
+
+def _caller_level() -> int:
+    """`stacklevel` for a warning issued by the caller of this function: the first frame outside `fitting`."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
 
 def set_smoothing(model, smoothing: float):
@@ -163,7 +181,8 @@ def solve(
     step shrinks; the other starts of a multi-start batch step as usual.
 
     Not itself jit-able (a Python loop, so that progress and Ctrl-C work); each trial and each linearisation is one
-    compiled call.
+    compiled call. A problem whose parameters are not float64 (JAX's 64-bit mode off) is fitted, with a
+    `fitting.PrecisionWarning`.
     """
     if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 1:
         raise PiezojaxValueError(f"`max_steps` must be an integer >= 1, got {max_steps!r}")
@@ -184,6 +203,13 @@ def solve(
         if not starts:
             raise PiezojaxValueError("`starts` must list at least one model (or be None: the problem's start)")
         u = jnp.stack([problem.u_of(m, name=f"starts[{i}]") for i, m in enumerate(starts)])
+    if u.dtype != jnp.float64:
+        warnings.warn(
+            f"fitting in {u.dtype}: JAX's 64-bit mode is off, so the model, data and solver work in single precision "
+            "(about 7 digits: costs and steps below ~1e-7 relative are rounding, standard errors unreliable). Call "
+            "`jax.config.update('jax_enable_x64', True)` before creating models and data (the command line does); "
+            "to fit in single precision on purpose, filter `fitting.PrecisionWarning`.",
+            PrecisionWarning, stacklevel=_caller_level())
     t0 = time.perf_counter()
     frozen = problem.frozen
     per_start: list[list] = [[] for _ in range(u.shape[0])]

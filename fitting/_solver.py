@@ -144,26 +144,45 @@ class NoProgressMeter(AbstractProgressMeter):
 
 
 class TextProgressMeter(AbstractProgressMeter):
-    """One line, rewritten in place after every step: step, (best) cost, accepted steps or running starts, elapsed
-    time; on `stream` (default: `sys.stderr` at the time of the fit)."""
+    """Step, (best) cost, accepted steps or running starts, and elapsed time, on `stream` (default: `sys.stderr` at
+    the time of the fit).
+
+    On a terminal, one live line rewritten in place after every step. Elsewhere (a log file, a pipe, a notebook's
+    captured stream) one complete line per update: the first step, then at most one line every `interval` seconds,
+    and the last step when the level ends — so a redirected log reads line by line instead of as one long line of
+    carriage returns."""
 
     stream: TextIO | None = None
+    interval: float = 2.0
 
     def _out(self):
         return sys.stderr if self.stream is None else self.stream
 
     def init(self, label, starts):
-        return None
+        try:
+            live = bool(self._out().isatty())
+        except (AttributeError, ValueError, OSError):  # no isatty, or a closed stream
+            live = False
+        return {"live": live, "printed_at": None, "pending": None}
 
     def step(self, state, progress):
         p = progress
         what = (f"cost {p.best_cost:.6e}  accepted {p.accepted:4d}" if p.starts == 1 else
                 f"best cost {p.best_cost:.6e}  running {p.running}/{p.starts}")
-        print(f"\r  {p.label}step {p.step:4d}  {what}  {p.seconds:7.1f} s", end="", file=self._out(), flush=True)
-        return state
+        line = f"  {p.label}step {p.step:4d}  {what}  {p.seconds:7.1f} s"
+        if state["live"]:
+            print(f"\r{line}", end="", file=self._out(), flush=True)
+            return state
+        if state["printed_at"] is None or p.seconds - state["printed_at"] >= self.interval:
+            print(line, file=self._out(), flush=True)
+            return {**state, "printed_at": p.seconds, "pending": None}
+        return {**state, "pending": line}
 
     def close(self, state):
-        print(file=self._out(), flush=True)
+        if state is None or state["live"]:
+            print(file=self._out(), flush=True)
+        elif state["pending"] is not None:
+            print(state["pending"], file=self._out(), flush=True)
 
 
 def as_progress_meter(progress) -> AbstractProgressMeter:

@@ -95,7 +95,7 @@ def test_progress_meters_are_pluggable(problem):
     assert steps[-1][3] == pytest.approx(res.cost, rel=1e-12)  # the best accepted cost so far
     text = io.StringIO()
     fitting.solve(problem, progress=fitting.TextProgressMeter(stream=text), max_steps=2)
-    assert text.getvalue().startswith("\r  step    1  cost ") and text.getvalue().endswith("\n")
+    assert text.getvalue().startswith("  step    1  cost ") and text.getvalue().endswith("\n")  # not a terminal
     with pytest.raises(PiezojaxValueError, match="`progress`"):
         fitting.solve(problem, progress="loud")
 
@@ -138,3 +138,66 @@ def test_fit_error_carries_the_failed_result_and_pickles(problem):
     assert error.code == "max_steps_reached" and not error.result.success and "max_steps" in str(error)
     again = pickle.loads(pickle.dumps(error))
     assert str(again) == str(error) and again.result.cost == error.result.cost
+
+
+class _Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def _progress(step, seconds):
+    return fitting.Progress(label="", step=step, best_cost=1.0 / step, accepted=step, running=1, starts=1,
+                            seconds=seconds)
+
+
+def test_text_progress_meter_live_line_on_a_terminal_complete_lines_elsewhere():
+    # a terminal gets one line rewritten in place
+    tty = _Terminal()
+    meter = fitting.TextProgressMeter(stream=tty)
+    state = meter.init("", 1)
+    for k in range(1, 4):
+        state = meter.step(state, _progress(k, 0.1 * k))
+    meter.close(state)
+    assert tty.getvalue().count("\r") == 3 and tty.getvalue().count("\n") == 1
+    # a log file gets whole lines: the first step, then one per `interval`, and the last step at the end
+    log = io.StringIO()
+    meter = fitting.TextProgressMeter(stream=log, interval=1.0)
+    state = meter.init("", 1)
+    for k, t in enumerate((0.1, 0.5, 1.2, 1.3, 1.4), start=1):
+        state = meter.step(state, _progress(k, t))
+    meter.close(state)
+    text = log.getvalue()
+    assert "\r" not in text
+    steps = [int(line.split("step")[1].split()[0]) for line in text.splitlines()]
+    assert steps == [1, 3, 5]
+    # nothing pending: the last printed line is not repeated
+    log = io.StringIO()
+    meter = fitting.TextProgressMeter(stream=log, interval=1.0)
+    state = meter.init("", 1)
+    meter.close(meter.step(state, _progress(1, 0.1)))
+    assert log.getvalue().count("\n") == 1
+
+
+def test_fit_in_single_precision_warns(tmp_path):
+    # JAX's 64-bit mode off (a fresh process: the tests run with it on): the fit runs and says it is float32
+    import subprocess
+    import sys
+
+    script = tmp_path / "f32.py"
+    script.write_text(
+        "import warnings, jax.numpy as jnp, numpy as np, fitting, piezojax as pj\n"
+        "v = 10 * np.sin(np.linspace(0, 6.28, 200))\n"
+        "exp = fitting.Experiment.from_arrays(v_in=v, dt=1e-3, displacement=2e-7 * v)\n"
+        "model = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.1]), jnp.array([1.0]), w0=1.0),\n"
+        "                    dynamics=pj.StableTransferFunction(1e-7))\n"
+        "with warnings.catch_warnings(record=True) as caught:\n"
+        "    warnings.simplefilter('always')\n"
+        "    res = fitting.fit(model, [exp], free=['hysteresis.w0'], progress=False, max_steps=5)\n"
+        "hits = [w for w in caught if issubclass(w.category, fitting.PrecisionWarning)]\n"
+        "assert len(hits) == 1 and 'float32' in str(hits[0].message), [str(w.message) for w in caught]\n"
+        "assert hits[0].filename == __file__, hits[0].filename\n"
+        "print('ok', res.model.hysteresis.w0.dtype)\n")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "ok float32" in proc.stdout
