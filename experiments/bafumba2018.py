@@ -211,16 +211,25 @@ def d2c(b: np.ndarray, a: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray
 # ----------------------------------------------------------------------------------------------- staged (the paper)
 
 
+@eqx.filter_jit
+def _charges(observer, v_in, v_out, dt):
+    return jax.vmap(observer.deformation_charge, in_axes=(0, 0, None))(v_in, v_out, dt)
+
+
+@eqx.filter_jit
+def _estimates(observer, v_in, v_out, dt):
+    return jax.vmap(lambda a, b: observer(a, b, dt).displacement)(v_in, v_out)
+
+
 def charge_records(recs: pj.Record, observer: pj.DynamicImpedanceObserver, dt: float) -> np.ndarray:
-    """$Q_\\delta$ of eq. (5) for every record (batched)."""
-    run = eqx.filter_jit(jax.vmap(lambda o, a, b: o.deformation_charge(a, b, dt), in_axes=(None, 0, 0)))
-    return np.asarray(run(observer, jnp.asarray(recs.v_in), jnp.asarray(recs.v_out)))
+    """$Q_\\delta$ of eq. (5) for every record (batched; compiled once per observer structure and shape)."""
+    return np.asarray(_charges(observer, jnp.asarray(recs.v_in), jnp.asarray(recs.v_out), jnp.asarray(dt)))
 
 
 def estimate(observer: pj.DynamicImpedanceObserver, recs: pj.Record, dt: float) -> np.ndarray:
-    """The observer's displacement estimate for every record (batched)."""
-    run = eqx.filter_jit(jax.vmap(lambda o, a, b: o(a, b, dt).displacement, in_axes=(None, 0, 0)))
-    return np.asarray(run(observer, jnp.asarray(recs.v_in), jnp.asarray(recs.v_out)))
+    """The observer's displacement estimate for every record (batched; compiled once per observer structure and
+    shape)."""
+    return np.asarray(_estimates(observer, jnp.asarray(recs.v_in), jnp.asarray(recs.v_out), jnp.asarray(dt)))
 
 
 def staged(bench, recs: pj.Record, g_rec: pj.Record, levels) -> dict:
