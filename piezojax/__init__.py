@@ -78,6 +78,7 @@ from ._nonlinear._input import (
 )
 from ._nonlinear.bouc_wen_oscillator import BoucWenOscillator as BoucWenOscillator
 from ._nonlinear.electromechanical import ElectromechanicalActuator as ElectromechanicalActuator
+from ._nonlinear.electromechanical import ElectromechanicalInverse as ElectromechanicalInverse
 from ._observers.base import (
     AbstractObserver as AbstractObserver,
     Estimate as Estimate,

@@ -247,3 +247,154 @@ class ElectromechanicalActuator(eqx.Module):
         carry0 = (jnp.zeros(2, dtype), jnp.zeros(n_el, dtype), jnp.zeros((), dtype))
         _, outs = jax.lax.scan(sample, carry0, (inputs, slopes))
         return dict(x=outs[:, 0], v=outs[:, 1], q=outs[:, 2], v_h=outs[:, 3], v_p=outs[:, 4])
+
+    def inverse(
+        self,
+        *,
+        dynamics: bool = True,
+        bandwidth: ArrayLike | None = None,
+        preview: bool = True,
+        iterations: int = 8,
+    ) -> "ElectromechanicalInverse":
+        r"""The inverse model for open-loop feedforward (paper 003 Fig. 49–50): `inv(x_d, dt)` is the voltage whose
+        simulated displacement follows `x_d` (see `ElectromechanicalInverse` for the method and its accuracy).
+
+        **Arguments:**
+
+        - `dynamics`: invert the mechanics (default); `False` for the quasi-static inverse (force $k x_d$: the
+          electrical part, hysteresis and $T_{em}(V)$, only).
+        - `bandwidth`: $\omega_f$ [rad/s] of the low-pass that makes the mechanics' inverse proper (default
+          $\sqrt{k/m} + b/m$, above the resonance; see `AbstractLinearSystem.inverse`).
+        - `preview`: read the reference ahead by the low-pass's delay $2/\omega_f$ (default True).
+        - `iterations`: Newton iterations per sample on the voltage (default 8; one suffices for a constant
+          $T_{em}$).
+
+        **Returns:** an `ElectromechanicalInverse`.
+
+        ```python
+        v = act.inverse()(x_desired, dt)        # act.simulate(v, dt)["x"] ~ x_desired
+        ```
+        """
+        from .._linear.transfer_function import TransferFunction
+
+        if not isinstance(dynamics, bool) or not isinstance(preview, bool):
+            raise PiezojaxValueError(f"`dynamics` and `preview` must be True or False, got {dynamics!r}, {preview!r}")
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+            raise PiezojaxValueError(f"`iterations` must be an int >= 1, got {iterations!r}")
+        model = self.check()
+        dtype = model.m.dtype
+        if not dynamics:
+            return ElectromechanicalInverse(model, None, None, jnp.zeros((), dtype), iterations, preview)
+        if bandwidth is None:
+            bandwidth = jnp.sqrt(model.k / model.m) + model.b / model.m
+        bandwidth = check_positive(check_scalar(bandwidth, "bandwidth"), "bandwidth").astype(dtype)
+        # G(s) = 1 / (m s^2 + b s + k): force -> displacement; its inverse with a 2nd-order low-pass is the force
+        plant = TransferFunction(jnp.ones((1,), dtype), jnp.stack([model.m, model.b, model.k]))
+        one = jnp.ones((), dtype)
+        lowpass = TransferFunction(jnp.stack([bandwidth**2]), jnp.stack([one, 2 * bandwidth, bandwidth**2]))
+        return ElectromechanicalInverse(model, plant.inverse(bandwidth, 2), lowpass, 2.0 / bandwidth, iterations,
+                                        preview)
+
+
+def _voltage_residual(model: ElectromechanicalActuator, v, force, x, s0, q0):
+    # r(V) = V - V_H(q) - V_p with V_p = F / T(V), q = C V_p + T(V) x, V_H the elements moved from (s0, q0) to q
+    t_em = model.coupling(v)
+    v_p = force / t_em
+    q = model.capacitance * v_p + t_em * x
+    v_h = jnp.sum(maxwell_voltages(s0, q0, q, model.element_capacitances, model.breakaway_voltages))
+    return v - v_h - v_p, q
+
+
+def electrical_inverse(model: ElectromechanicalActuator, force: Array, x: Array, iterations: int = 8):
+    r"""The voltages $V_k$ that give the transducer force $T_{em}(V_k)\,V_{p,k}$ = `force[k]` at displacement
+    `x[k]`, sample by sample from the relaxed state: Newton's iteration on $r(V) = V - V_H(q(V)) - F/T_{em}(V)$,
+    $q(V) = C F/T_{em}(V) + T_{em}(V)\,x$, from the previous sample's voltage, then the elements are moved to
+    the new charge (`maxwell_voltages`). **Returns:** `(voltage, charge, |residual|)`, each `(time,)`."""
+
+    def sample(carry, fx):
+        s0, q0, v = carry
+        f, xk = fx
+
+        def newton(v, _):
+            r, dr = jax.jvp(lambda u: _voltage_residual(model, u, f, xk, s0, q0)[0], (v,), (jnp.ones_like(v),))
+            return v - r / jnp.where(dr == 0, 1.0, dr), None
+
+        v, _ = jax.lax.scan(newton, v, None, length=iterations)
+        r, q = _voltage_residual(model, v, f, xk, s0, q0)
+        s1 = maxwell_voltages(s0, q0, q, model.element_capacitances, model.breakaway_voltages)
+        return (s1, q, v), jnp.stack([v, q, jnp.abs(r)])
+
+    dtype = force.dtype
+    n_el = model.element_capacitances.shape[0]
+    carry0 = (jnp.zeros(n_el, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype))
+    _, out = jax.lax.scan(sample, carry0, (force, x))
+    return out[:, 0], out[:, 1], out[:, 2]
+
+
+class ElectromechanicalInverse(eqx.Module):
+    r"""The voltage that makes an `ElectromechanicalActuator` follow a desired displacement (paper 003 §6.2,
+    Fig. 49–50, the inverse model for open-loop linearisation). Built by `ElectromechanicalActuator.inverse()`.
+
+    The model is inverted from its output back:
+
+    1. **Mechanics.** The transducer force $F = T_{em}(V)V_p$ that moves $x$ along $x_d$ is
+       $F = (m s^2 + b s + k)\,x_d$; it is made proper with the unit-DC-gain low-pass $(\omega_f/(s+\omega_f))^2$
+       (`AbstractLinearSystem.inverse` of $1/(ms^2+bs+k)$), so the displacement the force produces is
+       $x_f = x_d$ low-passed, and with `preview` the reference is read $2/\omega_f$ ahead (the low-pass's delay
+       to first order; plus $dt/2$ for `hold="zoh"`). Quasi-static (`dynamics=False`): $F = k x_d$, $x_f = x_d$.
+    2. **Electrical part** (`electrical_inverse`): per sample, the voltage $V$ with
+       $V = V_H(q) + F/T_{em}(V)$, $q = C\,F/T_{em}(V) + T_{em}(V)\,x_f$, by Newton's iteration from the previous
+       sample's voltage, the Maxwell-slip elements advanced exactly along the charge (as `simulate` does). With
+       a constant $T_{em}$ the equation is explicit ($V_p = F/T$, $q$ and $V_H(q)$ follow) and one iteration is exact.
+
+    So `act.simulate(inv(x_d, dt), dt)["x"]` follows $x_d$ with the low-pass's error $O((\omega/\omega_f)^2)$ at
+    frequency $\omega$ and the sampling error of the held drive. The electrical part inverts the forward model's own
+    samples to round-off wherever the charge is monotone over each sample; within a sample of a charge reversal it
+    differs by the forward model's own path error there (see `ElectromechanicalActuator`: the elements move along the
+    straight path between samples here, along the sub-steps there). The reference must start at rest ($x_d = 0$: the model starts
+    relaxed). If a Newton iteration ends with a residual above $10^{-6}$ of the voltage scale, the call fails
+    (`eqx.error_if`) rather than return it: raise `iterations`. $T_{em}(V)$ must not vanish on the voltages used.
+    Works under `jit`, `vmap` and differentiation with respect to the reference and the model's parameters.
+
+    **Fields:** `actuator`, `dynamics_inverse` (a `StateSpace`, or `None` when quasi-static), `lowpass` (the
+    low-pass as a `TransferFunction`, or `None`), `delay` [s],
+    `iterations`, `preview`.
+    """
+
+    actuator: ElectromechanicalActuator
+    dynamics_inverse: eqx.Module | None
+    lowpass: eqx.Module | None
+    delay: Array
+    iterations: int = eqx.field(static=True)
+    preview: bool = eqx.field(static=True)
+
+    def __call__(self, displacement: ArrayLike, dt: ArrayLike, hold: str = "linear") -> Array:
+        """The voltage samples for the desired `displacement` (1-D, real, finite, starting at 0), sample step `dt`
+        [s] and the `hold` the actuator will be simulated with (`"linear"` or `"zoh"`). **Returns:** voltage [V],
+        the shape of `displacement`."""
+        if hold not in ("linear", "zoh"):
+            raise PiezojaxValueError(f"`hold` must be 'linear' or 'zoh', got {hold!r}")
+        target = check_samples(displacement, "displacement")
+        if target.ndim != 1:
+            raise PiezojaxValueError(f"`displacement` must be 1-D of shape (time,), got shape {tuple(target.shape)}")
+        leaves = [x for x in jax.tree_util.tree_leaves(self) if eqx.is_array(x)]
+        dtype = common_float_dtype(target, dt, *leaves)
+        target = target.astype(dtype)
+        dt = check_step(dt, "dt", dtype)
+        m = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, self)
+        act = m.actuator.check()
+        if m.dynamics_inverse is None:
+            force, x = act.k * target, target
+        else:
+            if m.preview:
+                lead = m.delay + (0.5 * dt if hold == "zoh" else 0.0)
+                t = dt * jnp.arange(target.shape[0], dtype=dtype)
+                target = jnp.interp(t + lead, t, target)
+            force = m.dynamics_inverse.simulate(target, dt, hold="foh")
+            # the displacement this force produces: the reference through the low-pass (a critically damped pair)
+            x = m.lowpass.simulate(target, dt, hold="foh")
+        v, _, res = electrical_inverse(act, force, x, m.iterations)
+        scale = jnp.maximum(jnp.max(jnp.abs(v)), 1.0)
+        return eqx.error_if(v, jnp.max(res) > 1e-6 * scale,
+                            "ElectromechanicalInverse: Newton's iteration did not converge; raise `iterations`")
+
