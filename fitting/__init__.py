@@ -11,6 +11,8 @@
   components (`AbstractNormalSolver` with `init`/`step`/`terminate`; `LevenbergMarquardt`, `TrustRegion`), the
   outcomes `RESULTS`, progress meters (`AbstractProgressMeter`, `TextProgressMeter`, `NoProgressMeter`),
   `FitError` (`throw=True`) and `PrecisionWarning` (a fit in single precision).
+- Fleets: `fit_fleet` calibrates many actuators of one structure, each on its own records, in one compiled loop
+  (`vmap` over the fleet, sharded over devices), returning a `FleetResult`.
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 - Files: the submodule `fitting.files` writes files and folders completely or not at all (used by the command line
   and the experiments; not part of the calibration API above).
@@ -28,6 +30,7 @@ _EXPORTS = {
         "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "PaddedData", "load_experiment",
         "save_experiment",
     ),
+    "._fleet": ("FleetResult", "fit_fleet"),
     "._initialise": ("cold_start_actuator", "cold_start_free"),
     "._kinds": ("BlockKind", "ConfigTable", "StartData", "register_kind", "registered_kinds", "unregister_kind"),
     "._model_kinds": ("ModelKind", "register_model_kind"),
@@ -76,6 +79,7 @@ if TYPE_CHECKING:  # the same names for static analysis
         load_experiment as load_experiment,
         save_experiment as save_experiment,
     )
+    from ._fleet import FleetResult as FleetResult, fit_fleet as fit_fleet
     from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
     from ._kinds import (
         BlockKind as BlockKind,

@@ -12,6 +12,7 @@ from jaxtyping import Array, Float
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
+from piezojax._config import parallel_scans, scan_mode
 from piezojax._dtypes import common_float_dtype
 
 from ._predict import ExperimentArrays, Predictor, default_predictor, predict
@@ -136,6 +137,9 @@ class ProblemCore(eqx.Module):
     predictor: Predictor
     weights: tuple[tuple[str, float], ...] = eqx.field(static=True)
     chunk: int | None = eqx.field(static=True)
+    # `pj.set_parallel_scans`'s mode when the problem was built: the model's recurrences are traced in it (and, being
+    # static, a problem built in another mode compiles anew instead of reusing the other form)
+    scan_mode: str = eqx.field(static=True, default="auto")
 
     def params(self, u):
         return eqx.combine(self.unflatten(u * self.scales), self.frozen)
@@ -150,7 +154,8 @@ class ProblemCore(eqx.Module):
 
     def predictions(self, u) -> list[dict[str, Array]]:
         model = self.model_at(u)
-        return [self.group_predictions(model, g) for g in self.groups]
+        with parallel_scans(self.scan_mode):
+            return [self.group_predictions(model, g) for g in self.groups]
 
     def residuals(self, u):
         weights = dict(self.weights)
@@ -189,6 +194,10 @@ class ProblemCore(eqx.Module):
         directions themselves go `tangent_block` at a time (each block's JVPs hold the simulation's intermediates
         once per direction: measured 57 MB per direction on a 1e6-sample PI + creep + resonance record), into one
         $J^\top$ of the experiment; short records take every direction at once."""
+        with parallel_scans(self.scan_mode):
+            return self._normal_equations(u)
+
+    def _normal_equations(self, u):
         p = u.size
         eye = jnp.eye(p, dtype=u.dtype)
         weights = dict(self.weights)
@@ -313,6 +322,17 @@ def _residuals(core: ProblemCore, u):
     return core.residuals(u)
 
 
+def jacobian_scales(scales, jtj) -> np.ndarray:
+    r"""The Jacobian-column scaling $s_j / \|\partial r/\partial u_j\|$ from $J^\top J$ at $u = \theta/s$ (any leading
+    batch axes), rounded to powers of two (so that $\theta/s \cdot s = \theta$ exactly: the start is the user's model,
+    bit for bit); a column without effect keeps its scale `s`."""
+    scales, jtj = np.asarray(scales), np.asarray(jtj)
+    norms = np.sqrt(np.clip(np.diagonal(jtj, axis1=-2, axis2=-1), 0.0, None))
+    ok = np.isfinite(norms) & (norms > 0)
+    new = np.where(ok, scales / np.where(ok, norms, 1.0), scales)
+    return np.exp2(np.round(np.log2(new)))
+
+
 def estimate_noise_std(y: np.ndarray) -> float:
     r"""Robust white-noise standard deviation of a sampled signal: the median absolute deviation of its second
     differences, $\hat\sigma = \mathrm{MAD}(\Delta^2 y)/(0.6745\sqrt{6})$ (a smooth signal contributes little to
@@ -321,6 +341,34 @@ def estimate_noise_std(y: np.ndarray) -> float:
     if d2.size == 0:
         return 0.0
     return float(np.median(np.abs(d2 - np.median(d2))) / (0.6745 * np.sqrt(6.0)))
+
+
+def channel_weights(experiments, targets: Sequence[str], weights) -> dict[str, float]:
+    r"""The weight $w_c$ of each target channel over `experiments` (see `Problem`'s `weights`): `"range"` — one over
+    the channel's range over all the experiments that have it; `"noise"` — one over its estimated noise level
+    (`estimate_noise_std`, root mean square over the experiments); or a mapping with an entry for every target."""
+    out = {}
+    for c in targets:
+        ys = [np.asarray(exp.channels[c]) for exp in experiments if exp.has(c)]
+        if isinstance(weights, Mapping):
+            if c not in weights:
+                raise PiezojaxValueError(f"`weights` has no entry for the target channel {c!r}")
+            w = float(weights[c])
+        elif weights == "range":
+            rng = max(float(y.max()) for y in ys) - min(float(y.min()) for y in ys)
+            if not rng > 0:
+                raise PiezojaxValueError(f"channel {c!r} is constant in every experiment: use explicit `weights`")
+            w = 1.0 / rng
+        elif weights == "noise":
+            sigma = float(np.sqrt(np.mean([estimate_noise_std(y) ** 2 for y in ys])))
+            rng = max(float(y.max()) for y in ys) - min(float(y.min()) for y in ys)
+            w = 1.0 / max(sigma, 1e-9 * rng, np.finfo(float).tiny)
+        else:
+            raise PiezojaxValueError(f'`weights` must be "range", "noise" or a dict, got {weights!r}')
+        if not (np.isfinite(w) and w > 0):
+            raise PiezojaxValueError(f"`weights[{c!r}]` must be finite and > 0, got {w}")
+        out[c] = w
+    return out
 
 
 class Problem:
@@ -421,16 +469,11 @@ class Problem:
             raise PiezojaxValueError(f"`scales` must be {theta0.shape[0]} finite values > 0")
         groups = self._make_groups(dtype)
         core = ProblemCore(tuple(groups), frozen, scales, unflatten, predictor, tuple(self.weights.items()),
-                           jacobian_chunk)
+                           jacobian_chunk, scan_mode())
         if by_jacobian:
             # unit columns at the start (one Jacobian, compiled once and reused by the results' covariance)
             _, _, jtj = _normal_equations(core, theta0 / scales)
-            norms = np.sqrt(np.clip(np.diag(np.asarray(jtj)), 0.0, None))
-            ok = np.isfinite(norms) & (norms > 0)
-            new = np.where(ok, np.asarray(scales) / np.where(ok, norms, 1.0), np.asarray(scales))
-            # powers of two, so that theta0 / s * s == theta0 exactly (the start is the user's model, bit for bit)
-            new = np.exp2(np.round(np.log2(new)))
-            scales = jnp.asarray(new, theta0.dtype)
+            scales = jnp.asarray(jacobian_scales(scales, jtj), theta0.dtype)
             core = eqx.tree_at(lambda c: c.scales, core, scales)
         num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in groups for m in g.masks.values()))
         if num_residuals <= theta0.size:
@@ -454,28 +497,7 @@ class Problem:
     # ------------------------------------------------------------------ setup
 
     def _weights(self, weights) -> dict[str, float]:
-        out = {}
-        for c in self.targets:
-            ys = [np.asarray(exp.channels[c]) for exp in self.dataset if exp.has(c)]
-            if isinstance(weights, Mapping):
-                if c not in weights:
-                    raise PiezojaxValueError(f"`weights` has no entry for the target channel {c!r}")
-                w = float(weights[c])
-            elif weights == "range":
-                rng = max(float(y.max()) for y in ys) - min(float(y.min()) for y in ys)
-                if not rng > 0:
-                    raise PiezojaxValueError(f"channel {c!r} is constant in every experiment: use explicit `weights`")
-                w = 1.0 / rng
-            elif weights == "noise":
-                sigma = float(np.sqrt(np.mean([estimate_noise_std(y) ** 2 for y in ys])))
-                rng = max(float(y.max()) for y in ys) - min(float(y.min()) for y in ys)
-                w = 1.0 / max(sigma, 1e-9 * rng, np.finfo(float).tiny)
-            else:
-                raise PiezojaxValueError(f'`weights` must be "range", "noise" or a dict, got {weights!r}')
-            if not (np.isfinite(w) and w > 0):
-                raise PiezojaxValueError(f"`weights[{c!r}]` must be finite and > 0, got {w}")
-            out[c] = w
-        return out
+        return channel_weights(self.dataset, self.targets, weights)
 
     def _make_groups(self, dtype) -> list[_Group]:
         keys: dict[tuple, list[int]] = {}

@@ -5,12 +5,15 @@ time) go through one helper, `check_value`: a `PiezojaxValueError` when the valu
 is traced, so the same check also fires under `jit` and `vmap`.
 """
 
-from collections.abc import Callable, Sequence
+import contextlib
+import contextvars
+from collections.abc import Callable, Iterator, Sequence
 from typing import TypeVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, ArrayLike, PyTree
 
@@ -37,6 +40,34 @@ def concrete_or_none(x: Array):
         return np.asarray(x)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
         return None
+
+
+# how a failed check on a traced value acts: "raise" (`eqx.error_if`) or "nan" (see `refusals_as_nan`); read when the
+# check is traced, so a compiled function keeps the mode it was traced under
+_REFUSAL: contextvars.ContextVar[str] = contextvars.ContextVar("piezojax_refusal", default="raise")
+
+
+@contextlib.contextmanager
+def refusals_as_nan() -> Iterator[None]:
+    """While tracing inside this context, a value check (`check_value`) that fails on traced values makes the checked
+    floating values NaN instead of raising, separately for each member of a `vmap` batch.
+
+    `eqx.error_if` cannot serve a batch whose members are independent problems: under `vmap` one failing member
+    raises for all (and its `"nan"` mode makes every member NaN). A fleet of calibrations (`fitting.fit_fleet`)
+    traces its steps in this context, so that a trial point one actuator's model refuses is a non-finite, rejected
+    trial of that actuator alone. Concrete values still raise `PiezojaxValueError`. Only the tracing matters: a
+    function compiled inside the context keeps NaN refusals when called outside it, so jit such a function only
+    inside it.
+    """
+    token = _REFUSAL.set("nan")
+    try:
+        yield
+    finally:
+        _REFUSAL.reset(token)
+
+
+def _nan_where(bad, x):
+    return jtu.tree_map(lambda a: jnp.where(bad, jnp.nan, a) if eqx.is_inexact_array(a) else a, x)
 
 
 def is_traced(x: PyTree) -> bool:
@@ -66,6 +97,8 @@ def check_value(x: _X, ok: Callable[[_X], ArrayLike] | ArrayLike, message: str |
     messages = None if isinstance(message, str) else list(message)
 
     def attach(good):
+        if _REFUSAL.get() == "nan":
+            return _nan_where(~jnp.all(jnp.asarray(good)), x)
         if messages is None:
             return eqx.error_if(x, ~jnp.all(good), message)
         good = jnp.asarray(good)

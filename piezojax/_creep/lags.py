@@ -26,8 +26,10 @@ import scipy.signal
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError
+from .._config import use_parallel_scan
 from .._dtypes import common_float_dtype
 from .._hysteresis.play import _tangent_or_none
+from .._scans import affine_scan
 
 HOLDS = ("zoh", "foh", "interval")
 
@@ -65,11 +67,21 @@ def lag_scan(a: Array, b0: Array, b1: Array, c: Array, u: Array, u_next: Array) 
     measured inputs). Under `jax.jacfwd` the parameter directions are then a matrix product, not a batched scan body.
     """
 
+    if use_parallel_scan(u.shape[0]):
+        return _states_parallel(a, b0[None] * u[:, None] + b1[None] * u_next[:, None]) @ c
+
     def step(x, uu):
         return a * x + b0 * uu[0] + b1 * uu[1], jnp.sum(c * x)
 
     _, y = jax.lax.scan(step, jnp.zeros_like(c), jnp.stack([u, u_next], axis=1))
     return y
+
+
+def _states_parallel(a: Array, drive: Array) -> Array:
+    r"""The states $x_0 = 0, \ldots, x_{time-1}$ of $x_{k+1} = a \odot x_k + d_k$ (`drive`: shape `(time, *lags)`),
+    by `affine_scan` (the state each sample meets: the inclusive scan shifted by one sample)."""
+    after = affine_scan(a, drive)
+    return jnp.concatenate([jnp.zeros_like(after[:1]), after[:-1]])
 
 
 @functools.partial(lag_scan.defjvp, symbolic_zeros=True)
@@ -84,7 +96,13 @@ def _lag_scan_jvp(primals, tangents):
         return new, jnp.stack(carry)
 
     zero = jnp.zeros_like(c)
-    _, states = jax.lax.scan(step, (zero, zero, zero, zero), jnp.stack([u, u_next], axis=1))
+    if use_parallel_scan(u.shape[0]):
+        # x first, then its sensitivities X^a (driven by x), X^{b0} (by u), X^{b1} (by u+): one scan of three
+        x = _states_parallel(a, b0[None] * u[:, None] + b1[None] * u_next[:, None])
+        drive = jnp.stack([x, jnp.broadcast_to(u[:, None], x.shape), jnp.broadcast_to(u_next[:, None], x.shape)], 1)
+        states = jnp.concatenate([x[:, None], _states_parallel(a, drive)], axis=1)
+    else:
+        _, states = jax.lax.scan(step, (zero, zero, zero, zero), jnp.stack([u, u_next], axis=1))
     x = states[:, 0]  # (time, lags)
     y = x @ c
     # the parameter directions: one product of the (time, 4 * lags) sensitivities with the stacked tangents
@@ -99,7 +117,10 @@ def _lag_scan_jvp(primals, tangents):
         def tangent_step(z, uu):
             return a * z + b0 * uu[0] + b1 * uu[1], jnp.sum(c * z)
 
-        dy = dy + jax.lax.scan(tangent_step, zero, jnp.stack([du, du_next], axis=1))[1]
+        if use_parallel_scan(u.shape[0]):
+            dy = dy + _states_parallel(a, b0[None] * du[:, None] + b1[None] * du_next[:, None]) @ c
+        else:
+            dy = dy + jax.lax.scan(tangent_step, zero, jnp.stack([du, du_next], axis=1))[1]
     return y, dy
 
 

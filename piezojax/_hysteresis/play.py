@@ -27,9 +27,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_positive, check_value, concrete_or_none
+from .._config import use_parallel_scan
 from .._custom_types import ScalarLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
+from .._scans import affine_scan, clamp_scan
 from .base import AbstractHysteresis
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -277,6 +279,8 @@ def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_a
             lambda: sensitivity_scan(r, smoothing, v0, z0, signal, True, with_r, with_s, with_ab, with_play),
             lambda: sensitivity_scan(r, smoothing, v0, z0, signal, False, with_r, with_s, with_ab, with_play),
         )
+    if exact and use_parallel_scan(signal.shape[0]):
+        return _sensitivity_parallel(r, smoothing, v0, z0, signal, with_r, with_s, with_ab, with_play)
     init = [z0] + [jnp.zeros_like(z0)] * (int(with_r) + int(with_s))
 
     def body(carry, v):
@@ -293,6 +297,39 @@ def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_a
 
     (_, carry), (rows, ab) = jax.lax.scan(body, (v0, jnp.stack(init)), signal)
     return carry, rows, ab
+
+
+def _expand(signal, z):
+    """`signal` (time,) with unit axes to broadcast against stop values of shape `(time, *n)`."""
+    return signal.reshape(signal.shape + (1,) * (z.ndim - 1))
+
+
+def stop_values_parallel(r, v0, z0, signal):
+    r"""The exact stop values over `signal` (shape `(time, *n)`) by `clamp_scan` on the play output
+    $y = v - z$: $y_k = \mathrm{clip}(y_{k-1}, v_k - r, v_k + r)$ (the same recursion as `clip_stop`, rounded once
+    per sample instead of carried)."""
+    v = _expand(signal, jnp.zeros((1,) + jnp.shape(jnp.broadcast_arrays(r, z0)[0])))
+    y = clamp_scan(v - r, v + r, v0 - z0)
+    return v - y
+
+
+def _sensitivity_parallel(r, smoothing, v0, z0, signal, with_r, with_s, with_ab, with_play):
+    """`sensitivity_scan` of the exact operator in parallel in time: the stop values by `stop_values_parallel`,
+    then each sample's tangent coefficients (`step_coefficients`, elementwise) and $R_k = a_k R_{k-1} + c_k$ by
+    `affine_scan` ($S = 0$ for the exact operator)."""
+    z = stop_values_parallel(r, v0, z0, signal)
+    z_prev = jnp.concatenate([jnp.broadcast_to(z0, z.shape[1:])[None], z[:-1]])
+    v = _expand(signal, z)
+    v_prev = jnp.concatenate([jnp.reshape(v0, (1,) * v.ndim), v[:-1]])
+    _, a, b, c, _ = step_coefficients(z_prev, v - v_prev, r, smoothing, True)
+    new = [z]
+    if with_r:
+        new.append(affine_scan(a, c))
+    if with_s:
+        new.append(jnp.zeros_like(z))
+    rows = jnp.stack([v - z] + new[1:], axis=1) if with_play else jnp.stack(new, axis=1)
+    carry = jnp.stack([x[-1] for x in new])
+    return carry, rows, (jnp.stack([a, b], axis=1) if with_ab else None)
 
 
 def input_tangent_scan(ab, dz0, dv0, dv, signal_shape, dtype):
@@ -336,6 +373,9 @@ def stop_scan(exact: bool | None, r: Array, smoothing: Array, v0: Array, z0: Arr
     """
 
     def run(exact):
+        if exact and use_parallel_scan(signal.shape[0]):
+            return stop_values_parallel(r, v0, z0, signal)
+
         def body(carry, v):
             v_prev, z = carry
             z = stop_update(z, v - v_prev, r, smoothing, exact)

@@ -15,6 +15,7 @@ from .._checks import (
     check_value,
     check_vector,
 )
+from .._config import use_parallel_scan
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
@@ -29,6 +30,7 @@ from .play import (
     scan_exact_or_smooth,
     sensitivity_scan,
     stop_update,
+    stop_values_parallel,
 )
 
 
@@ -62,6 +64,10 @@ def pi_scan(
     """
 
     def run(exact):
+        if exact and use_parallel_scan(signal.shape[0]):
+            z = stop_values_parallel(r, v0, z0, signal)
+            return z[-1], w0 * signal + (signal[:, None] - z) @ weights
+
         def body(carry, v):
             v_prev, z = carry
             z = stop_update(z, v - v_prev, r, smoothing, exact)
