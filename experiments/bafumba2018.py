@@ -484,6 +484,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     start = time.perf_counter()
     hold = 60.0 if args.quick else 1000.0
     after = PAPER["fig10_after_s"] if not args.quick else 12.0  # the same fifth of the record in --quick

@@ -537,6 +537,7 @@ def main(argv=None):
 
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     start = time.perf_counter()
 
     if args.make_test is not None:

@@ -558,6 +558,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     start = time.perf_counter()
     key = jax.random.key(2014)
     keys = jax.random.split(key, 6)

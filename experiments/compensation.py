@@ -173,6 +173,7 @@ def main(argv: list[str] | None = None) -> list:
     parser.add_argument("--out", type=Path, default=Path("results/compensation"), help="result folder")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     fits = args.fits or args.out / "fits"
     models = fitted_models(fits)
     v, x = measured_sine()

@@ -209,6 +209,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     out = recovery(args.realisations, args.warm, args.seed, save=args.save)
     ok = np.all(np.abs(out["z"]) < 3) and out["first"].success
     if args.realisations > 1:

@@ -564,6 +564,7 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     import fitting
 
     start = time.perf_counter()

@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
+from piezojax._checks import PiezojaxValueError, refusal_mode
 from piezojax._config import parallel_scans, scan_mode
 from piezojax._dtypes import common_float_dtype
 
@@ -135,11 +135,16 @@ class ProblemCore(eqx.Module):
     scales: Array
     unflatten: _Unflatten
     predictor: Predictor
-    weights: tuple[tuple[str, float], ...] = eqx.field(static=True)
+    # the channel weights, array leaves: problems that differ only in their data's ranges share compiled code (also
+    # across processes, through the persistent compilation cache)
+    weights: dict[str, Array]
     chunk: int | None = eqx.field(static=True)
     # `pj.set_parallel_scans`'s mode when the problem was built: the model's recurrences are traced in it (and, being
     # static, a problem built in another mode compiles anew instead of reusing the other form)
     scan_mode: str = eqx.field(static=True, default="auto")
+    # how the model's runtime checks act when traced here: "nan" (a refused point has non-finite residuals: a
+    # rejected trial; no host callbacks, so the compiled steps can be cached on disk) or "raise" (`model_error`)
+    refusals: str = eqx.field(static=True, default="nan")
 
     def params(self, u):
         return eqx.combine(self.unflatten(u * self.scales), self.frozen)
@@ -154,7 +159,7 @@ class ProblemCore(eqx.Module):
 
     def predictions(self, u) -> list[dict[str, Array]]:
         model = self.model_at(u)
-        with parallel_scans(self.scan_mode):
+        with parallel_scans(self.scan_mode), refusal_mode(self.refusals):
             return [self.group_predictions(model, g) for g in self.groups]
 
     def residuals(self, u):
@@ -194,7 +199,7 @@ class ProblemCore(eqx.Module):
         directions themselves go `tangent_block` at a time (each block's JVPs hold the simulation's intermediates
         once per direction: measured 57 MB per direction on a 1e6-sample PI + creep + resonance record), into one
         $J^\top$ of the experiment; short records take every direction at once."""
-        with parallel_scans(self.scan_mode):
+        with parallel_scans(self.scan_mode), refusal_mode(self.refusals):
             return self._normal_equations(u)
 
     def _normal_equations(self, u):
@@ -333,6 +338,18 @@ def jacobian_scales(scales, jtj) -> np.ndarray:
     return np.exp2(np.round(np.log2(new)))
 
 
+def model_error(core: ProblemCore, u) -> str:
+    """The message of the runtime check the model fails at scaled parameters `u` (first line), or "" if none does:
+    the residuals traced once more with raising checks (the fit's own trace NaNs a refused point instead)."""
+    import dataclasses
+
+    try:
+        jax.block_until_ready(_residuals(dataclasses.replace(core, refusals="raise"), u))
+    except eqx.EquinoxRuntimeError as e:
+        return str(e).strip().splitlines()[0]
+    return ""
+
+
 def estimate_noise_std(y: np.ndarray) -> float:
     r"""Robust white-noise standard deviation of a sampled signal: the median absolute deviation of its second
     differences, $\hat\sigma = \mathrm{MAD}(\Delta^2 y)/(0.6745\sqrt{6})$ (a smooth signal contributes little to
@@ -468,8 +485,9 @@ class Problem:
         if scales.shape != theta0.shape or not bool(jnp.all(jnp.isfinite(scales) & (scales > 0))):
             raise PiezojaxValueError(f"`scales` must be {theta0.shape[0]} finite values > 0")
         groups = self._make_groups(dtype)
-        core = ProblemCore(tuple(groups), frozen, scales, unflatten, predictor, tuple(self.weights.items()),
-                           jacobian_chunk, scan_mode())
+        channel_w = {c: jnp.asarray(w, dtype) for c, w in self.weights.items()}
+        core = ProblemCore(tuple(groups), frozen, scales, unflatten, predictor, channel_w, jacobian_chunk,
+                           scan_mode())
         if by_jacobian:
             # unit columns at the start (one Jacobian, compiled once and reused by the results' covariance)
             _, _, jtj = _normal_equations(core, theta0 / scales)

@@ -29,7 +29,7 @@ from jaxtyping import Array, Bool, Float
 
 from piezojax._checks import PiezojaxError, PiezojaxValueError
 
-from ._problem import ProblemCore, linearise, over_starts
+from ._problem import ProblemCore, linearise, model_error, over_starts
 
 # ---------------------------------------------------------------------------------------------------- results
 
@@ -557,8 +557,9 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     verdicts: list = [None] * n_starts
     for i in range(n_starts):
         if not np.isfinite(cost_np[i]):
+            why = model_error(core, y[i])
             verdicts[i] = Verdict("nonfinite_initial", "the model's predictions are not finite at the initial "
-                                                       "parameters")
+                                                       "parameters" + (f" ({why})" if why else ""))
         elif not finite_np[i]:
             verdicts[i] = Verdict("nonfinite_initial", "the Jacobian is not finite at the initial parameters")
     active = np.array([v is None for v in verdicts])
@@ -623,6 +624,8 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                     else:
                         relinearise[i] = True
                 elif since[i] >= max_rejections:
+                    if not model_errors[i] and not np.isfinite(cost_eval_np[i]):  # a refusal traced as NaN
+                        model_errors[i] = model_error(core, trial.y[i])
                     why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
                     verdicts[i] = Verdict("stalled", f"no decrease of the cost in {since[i]} consecutive trial "
                                                      f"steps (stalled or diverging{why})")

@@ -24,7 +24,11 @@ from ._circuits.base import AbstractCircuit as AbstractCircuit
 from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegratorCircuit
 from ._circuits.smart_stack import SmartStackCircuit as SmartStackCircuit
 from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCircuit
-from ._config import enable_fast_cpu_scans as enable_fast_cpu_scans, set_parallel_scans as set_parallel_scans
+from ._config import (
+    enable_compilation_cache as enable_compilation_cache,
+    enable_fast_cpu_scans as enable_fast_cpu_scans,
+    set_parallel_scans as set_parallel_scans,
+)
 from ._control.adaptive_inverse import AdaptiveInverseController as AdaptiveInverseController
 from ._control.base import AbstractController as AbstractController, AbstractPlant as AbstractPlant
 from ._control.feedforward import (

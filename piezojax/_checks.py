@@ -48,6 +48,18 @@ _REFUSAL: contextvars.ContextVar[str] = contextvars.ContextVar("piezojax_refusal
 
 
 @contextlib.contextmanager
+def refusal_mode(mode: str) -> Iterator[None]:
+    """Trace value checks in `mode`: `"raise"` (`eqx.error_if`, the default) or `"nan"` (see `refusals_as_nan`)."""
+    if mode not in ("raise", "nan"):
+        raise PiezojaxValueError(f"`mode` must be 'raise' or 'nan', got {mode!r}")
+    token = _REFUSAL.set(mode)
+    try:
+        yield
+    finally:
+        _REFUSAL.reset(token)
+
+
+@contextlib.contextmanager
 def refusals_as_nan() -> Iterator[None]:
     """While tracing inside this context, a value check (`check_value`) that fails on traced values makes the checked
     floating values NaN instead of raising, separately for each member of a `vmap` batch.
@@ -55,15 +67,13 @@ def refusals_as_nan() -> Iterator[None]:
     `eqx.error_if` cannot serve a batch whose members are independent problems: under `vmap` one failing member
     raises for all (and its `"nan"` mode makes every member NaN). A fleet of calibrations (`fitting.fit_fleet`)
     traces its steps in this context, so that a trial point one actuator's model refuses is a non-finite, rejected
-    trial of that actuator alone. Concrete values still raise `PiezojaxValueError`. Only the tracing matters: a
-    function compiled inside the context keeps NaN refusals when called outside it, so jit such a function only
-    inside it.
+    trial of that actuator alone, and `fitting`'s problems trace their residuals in it too (an `eqx.error_if`
+    check is a host callback, which keeps a compiled program out of the persistent compilation cache). Concrete
+    values still raise `PiezojaxValueError`. Only the tracing matters: a function compiled inside the context keeps
+    NaN refusals when called outside it, so jit such a function only inside it.
     """
-    token = _REFUSAL.set("nan")
-    try:
+    with refusal_mode("nan"):
         yield
-    finally:
-        _REFUSAL.reset(token)
 
 
 def _nan_where(bad, x):

@@ -105,3 +105,62 @@ def use_parallel_scan(length: int) -> bool:
     import jax
 
     return jax.default_backend() != "cpu" and length >= PARALLEL_MIN_LENGTH
+
+
+# The persistent compilation cache: compiled XLA programs kept on disk, so that a new process with the same shapes
+# (a second `piezojax fit` of the same records' layout) loads them instead of compiling.
+CACHE_ENV = "PIEZOJAX_CACHE_DIR"
+
+
+def default_cache_dir() -> str | None:
+    """`$PIEZOJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/piezojax/xla`, else `~/.cache/piezojax/xla`; None when
+    `$PIEZOJAX_CACHE_DIR` is `off`, `0` or empty (the cache disabled)."""
+    value = os.environ.get(CACHE_ENV)
+    if value is not None:
+        return None if value.strip().lower() in ("", "0", "off", "false", "no") else value
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "piezojax", "xla")
+
+
+def enable_compilation_cache(path: str | os.PathLike | None = None, min_compile_seconds: float = 0.0) -> str | None:
+    """Keep compiled XLA programs on disk (JAX's persistent compilation cache), so that a later process running the
+    same computations with the same shapes skips their compilation.
+
+    The command line (`piezojax fit`, `predict`, `simulate`) and the experiments call it; a library user opts in by
+    calling it once (best before the first computation). Nothing is cached otherwise. Programs that compiled in
+    under `min_compile_seconds` are not stored. Programs with host callbacks (an `eqx.error_if` traced to raise,
+    `jax.debug.print`) are never stored: `fitting` traces its residuals with `refusals_as_nan` for this reason. A program is keyed by its computation, shapes, dtypes and the
+    backend, so new data of the same layout (record lengths, channels, model structure) reuse it, while a change of
+    JAX version or machine simply compiles anew. The folder may be deleted at any time.
+
+    **Arguments:**
+
+    - `path`: the cache folder; default `default_cache_dir()` (`$PIEZOJAX_CACHE_DIR`, else
+      `~/.cache/piezojax/xla`; `PIEZOJAX_CACHE_DIR=off` disables the cache).
+    - `min_compile_seconds`: programs that compiled faster are not stored (default 0: all of them; JAX's own
+      default is 1 s, but a fit also compiles dozens of small programs of 0.01–0.1 s, which add up to seconds).
+
+    **Returns:** the folder used, or None when the cache is disabled or the folder cannot be created (with a warning
+    then: computations run as usual, compiled in each process).
+    """
+    import jax
+
+    folder = default_cache_dir() if path is None else os.fspath(path)
+    if folder is None:
+        return None
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as e:
+        warnings.warn(f"the compilation cache folder {folder!r} cannot be created ({e}); compiling in every process",
+                      stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    try:  # JAX decides whether to use the cache at its first compilation: decide again with this folder
+        from jax.experimental.compilation_cache import compilation_cache
+
+        compilation_cache.reset_cache()
+    except (ImportError, AttributeError):  # pragma: no cover - moved in a later JAX: the folder applies from now on
+        pass
+    return folder

@@ -6,6 +6,9 @@ from hypothesis import HealthCheck, settings
 
 from piezojax import enable_fast_cpu_scans
 
+# The command line keeps compiled programs in a persistent cache; the tests compile afresh (one test checks the cache
+# with a folder of its own)
+os.environ.setdefault("PIEZOJAX_CACHE_DIR", "off")
 # Before any computation: long scan bodies (vmap, jacfwd) compile to fused loops (see piezojax/_config.py).
 enable_fast_cpu_scans()
 jax.config.update("jax_enable_x64", True)

@@ -46,7 +46,7 @@ def _records(n_actuators, seed=0, n=N):
 
 
 def _model():
-    m = pj.Actuator(pj.PrandtlIshlinskii(jnp.full(4, 0.5e-7), jnp.array([0.0, 8.0, 18.0, 33.0])),
+    m = pj.Actuator(pj.PrandtlIshlinskii(jnp.full(4, 0.5e-7), jnp.array([0.0, 8.0, 18.0, 33.0]), w0=0.0),
                     pj.KelvinVoigtCreep(jnp.array([4e7]), jnp.array([0.03]), k0=None), None)
     m = pj.constrain(m, lambda m: m.hysteresis.weights, pj.Positive)
     return pj.constrain(m, lambda m: m.creep.time_constants, pj.Positive)
