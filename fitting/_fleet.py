@@ -383,23 +383,28 @@ def fit_fleet(
         arrays = jtu.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], total - n, axis=0)]), arrays)
         u0 = jnp.concatenate([u0, jnp.repeat(u0[:1], total - n, axis=0)])
 
+    def begin(b0):
+        """Batch `b0`'s arrays (sharded; rescaled by its Jacobian) and its initial loop state."""
+        part = slice(b0, b0 + batch_size)
+        arr_b, u_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (arrays, u0, padding)), mesh)
+        if not explicit and scales == "jacobian":
+            lin = _fleet_linearise(statics, arr_b, u_b)
+            old = np.asarray(arr_b.scales)
+            new = jacobian_scales(old, lin.h).astype(old.dtype)
+            u_b = _shard(jnp.asarray(np.asarray(u_b) * old / new), mesh)  # the same starts, rescaled
+            arr_b = _shard(eqx.tree_at(lambda a: a.scales, arr_b, jnp.asarray(new)), mesh)
+        carry = _fleet_init(solver, window, statics, arr_b, u_b, pad_b)
+        return carry, arr_b, np.asarray(carry.lin.cost)
+
     carries, t0, interrupted = [], time.perf_counter(), False
     meter_state = meter.init("[fleet] ", n)
     with refusals_as_nan():
         try:
             for b0 in range(0, total, batch_size):
-                part = slice(b0, b0 + batch_size)
-                arr_b, u_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (arrays, u0, padding)), mesh)
-                if not explicit and scales == "jacobian":
-                    lin = _fleet_linearise(statics, arr_b, u_b)
-                    old = np.asarray(arr_b.scales)
-                    new = jacobian_scales(old, lin.h).astype(old.dtype)
-                    u_b = _shard(jnp.asarray(np.asarray(u_b) * old / new), mesh)  # the same starts, rescaled
-                    arr_b = _shard(eqx.tree_at(lambda a: a.scales, arr_b, jnp.asarray(new)), mesh)
-                carry = _fleet_init(solver, window, statics, arr_b, u_b, pad_b)
-                carries.append((carry, arr_b, np.asarray(carry.lin.cost)))
+                carries.append(begin(b0))
+                carry, arr_b, _ = carries[-1]
                 done = 0
-                while done < max_steps and not interrupted:
+                while done < max_steps:
                     done = min(done + steps_per_call, max_steps)
                     carry = _fleet_advance(solver, window, max_rejections, statics, arr_b, carry,
                                            jnp.asarray(done, jnp.int32))
@@ -416,10 +421,11 @@ def fit_fleet(
             interrupted = True
         finally:
             meter.close(meter_state)
+        # after Ctrl-C, the batches not begun keep their starts (one linearisation each, for their results)
+        for b0 in range(len(carries) * batch_size, total, batch_size):
+            carries.append(begin(b0))
     jax.block_until_ready(carries)
     seconds = time.perf_counter() - t0
-    if len(carries) * batch_size < n:  # interrupted before the last batches began: they keep their starts
-        raise KeyboardInterrupt
 
     def joined(get):
         return jtu.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *[get(c) for c in carries])

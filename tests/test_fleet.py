@@ -169,3 +169,27 @@ def test_bad_fleets_are_refused_naming_the_argument():
         fitting.fit_fleet(_model(), sets[0], free=FREE, progress=False)
     with pytest.raises(PiezojaxValueError, match="`scales`"):
         fitting.fit_fleet(_model(), sets, free=FREE, scales="unit", progress=False)
+
+
+class _Interrupt(fitting.AbstractProgressMeter):
+    """Ctrl-C at the first report."""
+
+    def init(self, label, starts):
+        return None
+
+    def step(self, state, progress):
+        raise KeyboardInterrupt
+
+    def close(self, state):
+        return None
+
+
+def test_ctrl_c_keeps_every_actuators_last_accepted_parameters(fleet):
+    sets, _ = fleet
+    res = fitting.fit_fleet(_model(), sets, free=FREE, weights=WEIGHTS, max_steps=12, batch_size=1,
+                            steps_per_call=1, progress=_Interrupt())
+    assert res.codes == ["interrupted"] * 3 and not any(res.success)
+    assert list(res.steps) == [1, 0, 0]  # the first batch took one step; the others never began
+    assert np.all(np.isfinite(res.cost)) and res.cost[1] == res.initial_cost[1]
+    start = fitting.Problem(_model(), sets[1], free=FREE, weights=WEIGHTS)
+    np.testing.assert_allclose(res[1].values, start.physical(start.u0), rtol=1e-12)
