@@ -339,7 +339,7 @@ def _setup_jax(figures: bool = False) -> None:
             warnings.simplefilter("ignore")
             pj.enable_fast_cpu_scans()
         jax.config.update("jax_enable_x64", True)
-        pj.enable_compilation_cache()  # a second run of the same shapes loads its compiled programs ($PIEZOJAX_CACHE_DIR)
+        pj.enable_compilation_cache()  # a second run of the same shapes loads its programs ($PIEZOJAX_CACHE_DIR)
 
 
 def _info(msg: str, quiet: bool = False) -> None:

@@ -129,9 +129,10 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, min_compile_
     The command line (`piezojax fit`, `predict`, `simulate`) and the experiments call it; a library user opts in by
     calling it once (best before the first computation). Nothing is cached otherwise. Programs that compiled in
     under `min_compile_seconds` are not stored. Programs with host callbacks (an `eqx.error_if` traced to raise,
-    `jax.debug.print`) are never stored: `fitting` traces its residuals with `refusals_as_nan` for this reason. A program is keyed by its computation, shapes, dtypes and the
-    backend, so new data of the same layout (record lengths, channels, model structure) reuse it, while a change of
-    JAX version or machine simply compiles anew. The folder may be deleted at any time.
+    `jax.debug.print`) are never stored: `fitting` traces its residuals with `refusals_as_nan` for this reason.
+    A program is keyed by its computation, shapes, dtypes and the backend, so new data of the same layout (record
+    lengths, channels, model structure) reuse it, while a change of JAX version or machine simply compiles anew.
+    The folder may be deleted at any time.
 
     **Arguments:**
 
