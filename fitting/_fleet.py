@@ -3,9 +3,14 @@ r"""Calibrating a fleet: many actuators of one structure, each with its own para
 Each actuator is its own least-squares problem (`Problem`: its records, its start, its free parameters in its own
 scaling). `fit_fleet` stacks the problems on a leading *fleet* axis and runs the solver's loop for all of them at
 once: the whole loop — trial step, linearisation at the trial point, acceptance, termination tests — is one pure JAX
-function of one actuator (`lax.while_loop`), mapped over the fleet with `vmap` and split over devices with
-`jax.shard_map`. A finished actuator is frozen while the others go on. The loop is stepped from Python a few steps at
-a time (`steps_per_call`), so progress is reported and Ctrl-C keeps the last accepted parameters.
+function of one actuator (`lax.while_loop`), mapped over the fleet with `vmap`; its arrays are sharded over the
+devices along the fleet axis (`NamedSharding`) and XLA partitions the compiled loop. A finished actuator is frozen
+while the others go on. The loop is stepped from Python a few steps at a time (`steps_per_call`), so progress is
+reported and Ctrl-C keeps the last accepted parameters.
+
+The model's runtime checks must be `piezojax`'s value checks (`check_value`, which a fleet traces as per-actuator NaN
+refusals). Other runtime errors — `eqx.error_if` written directly, diffrax's failure check in the ODE models
+(`BoucWenOscillator`, `ElectromechanicalActuator`) — raise for the whole fleet.
 
 Differences from `fitting.solve` (one problem, stepped from Python): every iteration linearises at the trial point,
 accepted or not (under `vmap` both branches of a choice run anyway; a rejected trial of one actuator costs what an
@@ -29,7 +34,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from piezojax._checks import PiezojaxValueError, refusals_as_nan
 
-from ._problem import Problem, ProblemCore, channel_weights, jacobian_scales
+from ._problem import Problem, ProblemCore, channel_weights, jacobian_scales, model_error
 from ._results import FitResult, summarise
 from ._solve import PrecisionWarning, _caller_level, _solver
 from ._solver import AbstractNormalSolver, Linearisation, Progress, Verdict, as_progress_meter, result_message
@@ -135,11 +140,13 @@ def _fleet_linearise(statics, arrays, u):
     return _fleet_map(one)(arrays, u)
 
 
-def _shard(tree, mesh: Mesh | None):
+def _shard(tree, mesh: Mesh | None, device=None):
     """Place every array of `tree` split along its leading (fleet) axis over the mesh's devices (XLA then partitions
-    the compiled loop: each device steps its share of the fleet)."""
+    the compiled loop: each device steps its share of the fleet), or on `device` without a mesh."""
     if mesh is None:
-        return tree
+        if device is None:
+            return tree
+        return jtu.tree_map(lambda x: jax.device_put(x, device) if eqx.is_array(x) else x, tree)
     sharding = NamedSharding(mesh, PartitionSpec("fleet"))
     return jtu.tree_map(lambda x: jax.device_put(x, sharding) if eqx.is_array(x) else x, tree)
 
@@ -246,8 +253,17 @@ def _stack(items, what):
         shapes = [jnp.shape(a) for a in jtu.tree_leaves(arrays)]
         if shapes != [jnp.shape(a) for a in jtu.tree_leaves(parts[0][0])]:
             raise PiezojaxValueError(what(i))
+        if not all(_same(a, b) for a, b in zip(jtu.tree_leaves(statics), jtu.tree_leaves(statics0))):
+            raise PiezojaxValueError(what(i))
     arrays = jtu.tree_map(lambda *xs: jnp.stack(xs), *[a for a, _ in parts])
     return statics0, arrays
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(np.all(a == b))
+    except Exception:  # noqa: BLE001 - not comparable: not the same
+        return a is b
 
 
 def fit_fleet(
@@ -334,6 +350,7 @@ def fit_fleet(
             if jtu.tree_structure(s) != jtu.tree_structure(model):
                 raise PiezojaxValueError(f"`starts[{i}]` does not have the structure of `model` (same blocks, "
                                          "parameter shapes and reparametrisations)")
+    devices_given = devices is not None
     devices = list(jax.devices()) if devices is None else list(devices)
     if not devices:
         raise PiezojaxValueError("`devices` must list at least one device")
@@ -372,6 +389,7 @@ def fit_fleet(
     problems = [problem(i, scales if explicit else "value") for i in range(n)]
     statics, arrays = _stack([p.core for p in problems], mismatch)
     u0 = jnp.stack([p.u0 for p in problems])
+    theta0 = jnp.stack([p.theta0 for p in problems])  # to rescale the starts exactly (powers of two)
     del problems  # their data live on in `arrays`; a `FitResult` rebuilds one on demand
     if u0.dtype != jnp.float64:
         warnings.warn(f"fitting in {u0.dtype}: JAX's 64-bit mode is off (see fitting.solve)", PrecisionWarning,
@@ -380,64 +398,83 @@ def fit_fleet(
     total = n + (-n) % batch_size
     padding = jnp.arange(total) >= n
     if total > n:  # padded with copies of the first actuator, which do not run
-        arrays = jtu.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], total - n, axis=0)]), arrays)
-        u0 = jnp.concatenate([u0, jnp.repeat(u0[:1], total - n, axis=0)])
+        arrays, u0, theta0 = jtu.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], total - n, axis=0)]),
+                                          (arrays, u0, theta0))
+
+    device = devices[0] if devices_given and len(devices) == 1 else None
 
     def begin(b0):
         """Batch `b0`'s arrays (sharded; rescaled by its Jacobian) and its initial loop state."""
         part = slice(b0, b0 + batch_size)
-        arr_b, u_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (arrays, u0, padding)), mesh)
+        arr_b, u_b, th_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (arrays, u0, theta0, padding)), mesh,
+                                         device)
         if not explicit and scales == "jacobian":
             lin = _fleet_linearise(statics, arr_b, u_b)
             old = np.asarray(arr_b.scales)
             new = jacobian_scales(old, lin.h).astype(old.dtype)
-            u_b = _shard(jnp.asarray(np.asarray(u_b) * old / new), mesh)  # the same starts, rescaled
-            arr_b = _shard(eqx.tree_at(lambda a: a.scales, arr_b, jnp.asarray(new)), mesh)
+            u_b = _shard(jnp.asarray(np.asarray(th_b) / new), mesh, device)  # the same starts, exactly
+            arr_b = _shard(eqx.tree_at(lambda a: a.scales, arr_b, jnp.asarray(new)), mesh, device)
         carry = _fleet_init(solver, window, statics, arr_b, u_b, pad_b)
-        return carry, arr_b, np.asarray(carry.lin.cost)
+        return {"carry": carry, "arrays": arr_b, "initial": np.asarray(carry.lin.cost), "finished": False}
 
-    carries, t0, interrupted = [], time.perf_counter(), False
+    def not_begun(b0):
+        """Batch `b0` after Ctrl-C: its starts, not linearised (NaN costs and linearisation)."""
+        part = slice(b0, b0 + batch_size)
+        arr_b, u_b, pad_b = jtu.tree_map(lambda x: x[part], (arrays, u0, padding))
+        shapes = eqx.filter_eval_shape(_fleet_init, solver, window, statics, arr_b, u_b, pad_b)
+        carry = jtu.tree_map(lambda x: jnp.full(x.shape, np.nan if jnp.issubdtype(x.dtype, jnp.inexact) else 0,
+                                                x.dtype), shapes)
+        code = jnp.where(pad_b, _PADDING, _RUNNING).astype(jnp.int32)
+        carry = eqx.tree_at(lambda c: (c.y, c.code), carry, (u_b, code))
+        return {"carry": carry, "arrays": arr_b, "initial": np.full(u_b.shape[0], np.nan), "finished": False}
+
+    batches, t0, interrupted = [], time.perf_counter(), False
     meter_state = meter.init("[fleet] ", n)
     with refusals_as_nan():
         try:
             for b0 in range(0, total, batch_size):
-                carries.append(begin(b0))
-                carry, arr_b, _ = carries[-1]
+                batches.append(begin(b0))
+                batch = batches[-1]
                 done = 0
                 while done < max_steps:
                     done = min(done + steps_per_call, max_steps)
-                    carry = _fleet_advance(solver, window, max_rejections, statics, arr_b, carry,
-                                           jnp.asarray(done, jnp.int32))
-                    carries[-1] = (carry, arr_b, carries[-1][2])
-                    codes = np.concatenate([np.asarray(c.code) for c, _, _ in carries])[:n]
+                    batch["carry"] = _fleet_advance(solver, window, max_rejections, statics, batch["arrays"],
+                                                    batch["carry"], jnp.asarray(done, jnp.int32))
+                    codes = np.asarray(batch["carry"].code)
                     running = int(np.sum(codes == _RUNNING)) + max(0, n - b0 - batch_size)
-                    best = float(np.nanmin(np.concatenate([np.asarray(c.lin.cost) for c, _, _ in carries])[:n]))
-                    accepted = np.concatenate([np.asarray(c.accepted) for c, _, _ in carries])[:n]
+                    best = float(np.nanmin(np.concatenate([np.asarray(b["carry"].lin.cost) for b in batches])[:n]))
+                    accepted = np.concatenate([np.asarray(b["carry"].accepted) for b in batches])[:n]
                     meter_state = meter.step(meter_state, Progress(
                         "[fleet] ", done, best, int(np.median(accepted)), running, n, time.perf_counter() - t0))
-                    if not np.any(np.asarray(carry.code) == _RUNNING):
+                    if not np.any(codes == _RUNNING):
                         break
+                batch["finished"] = True
         except KeyboardInterrupt:
             interrupted = True
         finally:
             meter.close(meter_state)
-        # after Ctrl-C, the batches not begun keep their starts (one linearisation each, for their results)
-        for b0 in range(len(carries) * batch_size, total, batch_size):
-            carries.append(begin(b0))
-    jax.block_until_ready(carries)
+    for b0 in range(len(batches) * batch_size, total, batch_size):  # after Ctrl-C: the batches not begun
+        batches.append(not_begun(b0))
+    jax.block_until_ready([b["carry"] for b in batches])
     seconds = time.perf_counter() - t0
+    # an actuator still running when the loop ended: interrupted, unless its batch ran to max_steps
+    cut = np.concatenate([np.full(b["carry"].code.shape[0], not b["finished"]) for b in batches])[:n]
 
     def joined(get):
-        return jtu.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *[get(c) for c in carries])
+        return jtu.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *[get(b) for b in batches])
 
-    carry = joined(lambda c: c[0])
-    core = eqx.combine(joined(lambda c: c[1]), statics)
-    initial_cost = np.concatenate([c[2] for c in carries])[:n]
+    carry = joined(lambda b: b["carry"])
+    core = eqx.combine(joined(lambda b: b["arrays"]), statics)
+    initial_cost = np.concatenate([b["initial"] for b in batches])[:n]
     scales_np = np.asarray(core.scales)
     codes = np.asarray(carry.code)
     since = np.asarray(carry.since)
-    verdicts = [_verdict(int(c), solver, float(solver.ftol), window, max_rejections, int(k), max_steps, interrupted)
-                for c, k in zip(codes, since)]
+    verdicts = [_verdict(int(c), solver, float(solver.ftol), window, max_rejections, int(k), max_steps,
+                         interrupted and bool(cut[i])) for i, (c, k) in enumerate(zip(codes, since))]
+    for i, v in enumerate(verdicts):
+        if v.code == "nonfinite_initial":  # the model's own message, from a trace that raises
+            why = model_error(problem(i, scales_np[i]).core, carry.y[i])
+            verdicts[i] = Verdict(v.code, v.reason + (f" ({why})" if why else ""))
     params = jax.vmap(lambda c, u: c.params(u))(core, carry.y)
     model_out = jax.vmap(lambda c, u: c.model_at(u))(core, carry.y)
     return FleetResult(

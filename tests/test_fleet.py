@@ -190,6 +190,25 @@ def test_ctrl_c_keeps_every_actuators_last_accepted_parameters(fleet):
                             steps_per_call=1, progress=_Interrupt())
     assert res.codes == ["interrupted"] * 3 and not any(res.success)
     assert list(res.steps) == [1, 0, 0]  # the first batch took one step; the others never began
-    assert np.all(np.isfinite(res.cost)) and res.cost[1] == res.initial_cost[1]
+    assert np.isfinite(res.cost[0]) and np.all(np.isnan(res.cost[1:]))  # not begun: not even linearised
     start = fitting.Problem(_model(), sets[1], free=FREE, weights=WEIGHTS)
     np.testing.assert_allclose(res[1].values, start.physical(start.u0), rtol=1e-12)
+    assert res[1].std_error_status == ["not computed"] * len(res[1].values)
+    # a batch that ran to max_steps before the interrupt keeps that verdict
+    two = fitting.fit_fleet(_model(), sets, free=FREE, weights=WEIGHTS, max_steps=2, batch_size=1,
+                            steps_per_call=1, progress=_InterruptAt(4))
+    assert two.codes == ["max_steps_reached", "interrupted", "interrupted"] and list(two.steps) == [2, 2, 0]
+
+
+class _InterruptAt(_Interrupt):
+    """Ctrl-C at the report number `at`."""
+
+    at: int
+
+    def init(self, label, starts):
+        return 0
+
+    def step(self, state, progress):
+        if state + 1 == self.at:
+            raise KeyboardInterrupt
+        return state + 1

@@ -305,12 +305,15 @@ def _expand(signal, z):
 
 
 def stop_values_parallel(r, v0, z0, signal):
-    r"""The exact stop values over `signal` (shape `(time, *n)`) by `clamp_scan` on the play output
-    $y = v - z$: $y_k = \mathrm{clip}(y_{k-1}, v_k - r, v_k + r)$ (the same recursion as `clip_stop`, rounded once
-    per sample instead of carried)."""
+    r"""The exact stop values, shape `(time, *n)`, over `signal` (shape `(time,)`) by `clamp_scan` on the play
+    output $y = v - z$: $y_k = \mathrm{clip}(y_{k-1}, v_k - r, v_k + r)$, the same recursion as `clip_stop`. A
+    clamped sample's stop value is exactly $\pm r$, as the sequential update gives it (the derivative rules tell a
+    tie from a clamp by it); a free one is rounded once per sample instead of carried."""
     v = _expand(signal, jnp.zeros((1,) + jnp.shape(jnp.broadcast_arrays(r, z0)[0])))
-    y = clamp_scan(v - r, v + r, v0 - z0)
-    return v - y
+    lo, hi = v - r, v + r
+    y = clamp_scan(lo, hi, v0 - z0)
+    r_full = jnp.broadcast_to(r, y.shape)
+    return jnp.where(y == lo, r_full, jnp.where(y == hi, -r_full, v - y))
 
 
 def _sensitivity_parallel(r, smoothing, v0, z0, signal, with_r, with_s, with_ab, with_play):
@@ -340,6 +343,10 @@ def input_tangent_scan(ab, dz0, dv0, dv, signal_shape, dtype):
     dv0 = jnp.zeros((), dtype) if dv0 is None else dv0
     dz0 = jnp.zeros(n_shape, dtype) if dz0 is None else dz0
     ddelta = jnp.diff(dv, prepend=dv0[None])
+
+    if use_parallel_scan(ab.shape[0]):
+        dz = affine_scan(ab[:, 0], ab[:, 1] * _expand(ddelta, ab[:, 0]), dz0)
+        return dz[-1], dz
 
     def body(dz, x):
         dd, coeffs = x  # the linear input first, the residual coefficients last (scan transposition)
