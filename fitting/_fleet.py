@@ -2,11 +2,11 @@ r"""Calibrating a fleet: many actuators of one structure, each with its own para
 
 Each actuator is its own least-squares problem (`Problem`: its records, its start, its free parameters in its own
 scaling). `fit_fleet` stacks the problems on a leading *fleet* axis and runs the solver's loop for all of them at
-once: the whole loop — trial step, linearisation at the trial point, acceptance, termination tests — is one pure JAX
-function of one actuator (`lax.while_loop`), mapped over the fleet with `vmap`; its arrays are sharded over the
-devices along the fleet axis (`NamedSharding`) and XLA partitions the compiled loop. A finished actuator is frozen
-while the others go on. The loop is stepped from Python a few steps at a time (`steps_per_call`), so progress is
-reported and Ctrl-C keeps the last accepted parameters.
+once: one iteration — trial step, linearisation at the trial point, acceptance, termination tests — is one pure JAX
+function of one actuator, mapped over the fleet with `vmap` and compiled once; its arrays are sharded over the
+devices along the fleet axis (`NamedSharding`) and XLA partitions the step. A finished actuator is frozen while the
+others go on. The steps are dispatched from Python, `steps_per_call` at a time before the verdicts are read, so
+progress is reported and Ctrl-C keeps the last accepted parameters.
 
 The model's runtime checks must be `piezojax`'s value checks (`check_value`, which a fleet traces as per-actuator NaN
 refusals). Other runtime errors — `eqx.error_if` written directly, diffrax's failure check in the ODE models
@@ -75,40 +75,32 @@ def _init_one(solver: AbstractNormalSolver, window: int, core: ProblemCore, u, p
                   code.astype(jnp.int32))
 
 
-def _advance_one(solver: AbstractNormalSolver, window: int, max_rejections: int, core: ProblemCore, c: _Carry,
-                 stop):
-    """Iterate one actuator until it finishes or has taken `stop` steps."""
+def _step_one(solver: AbstractNormalSolver, window: int, max_rejections: int, core: ProblemCore, c: _Carry) -> _Carry:
+    """One iteration of one actuator (a finished actuator stays as it is)."""
     ftol = jnp.asarray(solver.ftol, c.y.dtype)
-
-    def cond(c):
-        return (c.code == _RUNNING) & (c.steps < stop)
-
-    def body(c):
-        active = c.code == _RUNNING
-        # the trial point comes from the descent alone; the model is linearised there once, and the solver's step is
-        # then taken with those residuals (the same trial point: the descent is deterministic)
-        probe, _ = solver.step(lambda y: c.lin.r, c.y, c.lin, c.state, active)
-        lin_t, finite_t = _linearise_one(core, probe.y)
-        trial, new_state = solver.step(lambda y: lin_t.r, c.y, c.lin, c.state, active)
-        terminate = solver.terminate(c.y, c.lin, trial, new_state)
-        take = active & trial.accept & trial.ok
-        lin_t = Linearisation(lin_t.r, trial.cost, lin_t.g, lin_t.h)
-        accepted = c.accepted + take.astype(jnp.int32)
-        recent = jnp.where(take, jnp.concatenate([c.recent[1:], trial.cost[None]]), c.recent)
-        since = jnp.where(take, 0, c.since + active.astype(jnp.int32))
-        flat = take & (accepted >= window) & (recent[0] - recent[-1] <= ftol * window * recent[-1])
-        code = jnp.select(
-            [~active, ~trial.ok, terminate, flat, take & ~finite_t, ~take & (since >= max_rejections)],
-            [c.code, _LINEAR_SOLVE, _CONVERGED, _CONVERGED_WINDOW, _NONFINITE, _STALLED],
-            _RUNNING,
-        ).astype(jnp.int32)
-        lin = _select(take, lin_t, c.lin)
-        state = _select(active, new_state, c.state)
-        state = _select(take, solver.relinearise(state, lin), state)
-        return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), accepted, since,
-                      recent, code)
-
-    return jax.lax.while_loop(cond, body, c)
+    active = c.code == _RUNNING
+    # the trial point comes from the descent alone; the model is linearised there once, and the solver's step is
+    # then taken with those residuals (the same trial point: the descent is deterministic)
+    probe, _ = solver.step(lambda y: c.lin.r, c.y, c.lin, c.state, active)
+    lin_t, finite_t = _linearise_one(core, probe.y)
+    trial, new_state = solver.step(lambda y: lin_t.r, c.y, c.lin, c.state, active)
+    terminate = solver.terminate(c.y, c.lin, trial, new_state)
+    take = active & trial.accept & trial.ok
+    lin_t = Linearisation(lin_t.r, trial.cost, lin_t.g, lin_t.h)
+    accepted = c.accepted + take.astype(jnp.int32)
+    recent = jnp.where(take, jnp.concatenate([c.recent[1:], trial.cost[None]]), c.recent)
+    since = jnp.where(take, 0, c.since + active.astype(jnp.int32))
+    flat = take & (accepted >= window) & (recent[0] - recent[-1] <= ftol * window * recent[-1])
+    code = jnp.select(
+        [~active, ~trial.ok, terminate, flat, take & ~finite_t, ~take & (since >= max_rejections)],
+        [c.code, _LINEAR_SOLVE, _CONVERGED, _CONVERGED_WINDOW, _NONFINITE, _STALLED],
+        _RUNNING,
+    ).astype(jnp.int32)
+    lin = _select(take, lin_t, c.lin)
+    state = _select(active, new_state, c.state)
+    state = _select(take, solver.relinearise(state, lin), state)
+    return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), accepted, since,
+                  recent, code)
 
 
 def _fleet_map(fn):
@@ -125,9 +117,12 @@ def _fleet_init(solver, window, statics, arrays, u, padding):
 
 
 @eqx.filter_jit
-def _fleet_advance(solver, window, max_rejections, statics, arrays, carry, stop):
+def _fleet_step(solver, window, max_rejections, statics, arrays, carry):
+    """One iteration of every actuator of a batch: one compiled step, which `fit_fleet` dispatches
+    `steps_per_call` times without waiting for the device, then reads the verdicts."""
+
     def one(arrays, carry):
-        return _advance_one(solver, window, max_rejections, eqx.combine(arrays, statics), carry, stop)
+        return _step_one(solver, window, max_rejections, eqx.combine(arrays, statics), carry)
 
     return _fleet_map(one)(arrays, carry)
 
@@ -437,9 +432,10 @@ def fit_fleet(
                 batch = batches[-1]
                 done = 0
                 while done < max_steps:
+                    for _ in range(min(steps_per_call, max_steps - done)):  # dispatched without waiting
+                        batch["carry"] = _fleet_step(solver, window, max_rejections, statics, batch["arrays"],
+                                                     batch["carry"])
                     done = min(done + steps_per_call, max_steps)
-                    batch["carry"] = _fleet_advance(solver, window, max_rejections, statics, batch["arrays"],
-                                                    batch["carry"], jnp.asarray(done, jnp.int32))
                     codes = np.asarray(batch["carry"].code)
                     running = int(np.sum(codes == _RUNNING)) + max(0, n - b0 - batch_size)
                     best = float(np.nanmin(np.concatenate([np.asarray(b["carry"].lin.cost) for b in batches])[:n]))

@@ -103,12 +103,12 @@ def test_batches_and_host_devices_give_the_same_fit(fleet):
         import fitting, fitting._fleet as F
         from test_fleet import _records, _model, FREE, WEIGHTS
         seen = []
-        advance = F._fleet_advance
+        advance = F._fleet_step
         def spy(*args):
             out = advance(*args)
             seen.append(str(getattr(out.y.sharding, "spec", "one device")))
             return out
-        F._fleet_advance = spy
+        F._fleet_step = spy
         sets = _records(3)
         two = fitting.fit_fleet(_model(), sets, free=FREE, weights=WEIGHTS, max_steps=12, progress=False)
         one = fitting.fit_fleet(_model(), sets, free=FREE, weights=WEIGHTS, max_steps=12, progress=False,
