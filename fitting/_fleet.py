@@ -311,7 +311,8 @@ def fit_fleet(
       about 4–5 times one actuator's Jacobian (records × samples × free parameters × 8 bytes) per actuator
       (measured on CPU: 131 MB per actuator for 1e5 samples and 37 parameters). The fleet is padded to a multiple
       of it with copies of the first actuator that do not run.
-    - `steps_per_call`: the steps each compiled call may take before control returns to Python (progress, Ctrl-C).
+    - `steps_per_call`: the compiled steps dispatched before the verdicts are read (progress, Ctrl-C, the stop when
+      every actuator has finished).
     - `progress`: as for `fitting.solve` (the meter's "accepted" count is the fleet's median).
 
     **Returns:** a `FleetResult` (per-actuator verdicts, costs and RMSEs; `result[i]` is actuator $i$'s
