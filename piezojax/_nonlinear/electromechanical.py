@@ -308,18 +308,41 @@ def _voltage_residual(model: ElectromechanicalActuator, v, force, x, s0, q0):
 def electrical_inverse(model: ElectromechanicalActuator, force: Array, x: Array, iterations: int = 8):
     r"""The voltages $V_k$ that give the transducer force $T_{em}(V_k)\,V_{p,k}$ = `force[k]` at displacement
     `x[k]`, sample by sample from the relaxed state: Newton's iteration on $r(V) = V - V_H(q(V)) - F/T_{em}(V)$,
-    $q(V) = C F/T_{em}(V) + T_{em}(V)\,x$, from the previous sample's voltage, then the elements are moved to
-    the new charge (`maxwell_voltages`). **Returns:** `(voltage, charge, |residual|)`, each `(time,)`."""
+    $q(V) = C F/T_{em}(V) + T_{em}(V)\,x$, from the previous sample's voltage, safeguarded by bisection inside the
+    bracket of sign changes seen so far (the Maxwell-slip kinks), then the elements are moved to the new charge
+    (`maxwell_voltages`). The derivatives are those of the implicit function $r(V) = 0$ (not of the iterations).
+    **Returns:** `(voltage, charge, |residual|)`, each `(time,)`."""
+
+    frozen = jax.lax.stop_gradient(model)
 
     def sample(carry, fx):
         s0, q0, v = carry
         f, xk = fx
 
-        def newton(v, _):
-            r, dr = jax.jvp(lambda u: _voltage_residual(model, u, f, xk, s0, q0)[0], (v,), (jnp.ones_like(v),))
-            return v - r / jnp.where(dr == 0, 1.0, dr), None
+        def residual(mdl, u, f, xk, s0, q0):
+            return _voltage_residual(mdl, u, f, xk, s0, q0)[0]
 
-        v, _ = jax.lax.scan(newton, v, None, length=iterations)
+        def newton(state, _):
+            # Newton's step while it stays inside the bracket [lo, hi] of the sign changes seen so far, bisection
+            # otherwise: r(V) is increasing but only piecewise smooth (each element's stick-slip kink; an element
+            # of tiny capacitance is a near-jump), where plain Newton can cycle across a kink.
+            u, lo, hi = state
+            r, dr = jax.jvp(lambda w: residual(frozen, w, *args), (u,), (jnp.ones_like(u),))
+            lo = jnp.where(r <= 0, u, lo)
+            hi = jnp.where(r >= 0, u, hi)
+            step = u - r / jnp.where(dr > 0, dr, 1.0)
+            inside = jnp.isfinite(step) & (step >= lo) & (step <= hi) & (dr > 0)
+            bracketed = jnp.isfinite(lo) & jnp.isfinite(hi)
+            u = jnp.where(inside, step, jnp.where(bracketed, 0.5 * (lo + hi), u - r))
+            return (u, lo, hi), None
+
+        args = jax.lax.stop_gradient((f, xk, s0, q0))
+        inf = jnp.full_like(v, jnp.inf)
+        (v, _, _), _ = jax.lax.scan(newton, (jax.lax.stop_gradient(v), -inf, inf), None, length=iterations)
+        # the value found, with the implicit function's derivative: dv = -(dr/dtheta) / (dr/dv)
+        r, dr = jax.jvp(lambda w: residual(frozen, w, *args), (v,), (jnp.ones_like(v),))
+        r_live = residual(model, v, f, xk, s0, q0)
+        v = v - (r_live - jax.lax.stop_gradient(r_live)) / jnp.where(dr > 0, dr, 1.0)
         r, q = _voltage_residual(model, v, f, xk, s0, q0)
         s1 = maxwell_voltages(s0, q0, q, model.element_capacitances, model.breakaway_voltages)
         return (s1, q, v), jnp.stack([v, q, jnp.abs(r)])
