@@ -12,6 +12,7 @@ from ._benches.bafumba import (
 from ._benches.chen import ChenBench as ChenBench, ChenStagePlant as ChenStagePlant
 from ._benches.common import (
     AbstractBench as AbstractBench,
+    AbstractSelfSensingBench as AbstractSelfSensingBench,
     Record as Record,
     step_command as step_command,
 )
@@ -19,6 +20,7 @@ from ._benches.ivan import (
     IvanBench as IvanBench,
     periodic_steps as periodic_steps,
 )
+from ._benches.quant import QuantBench as QuantBench, charge_preisach as charge_preisach
 from ._checks import PiezojaxError as PiezojaxError, PiezojaxValueError as PiezojaxValueError
 from ._circuits.base import AbstractCircuit as AbstractCircuit
 from ._circuits.charge_integrator import ChargeIntegratorCircuit as ChargeIntegratorCircuit

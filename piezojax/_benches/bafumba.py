@@ -11,7 +11,7 @@ from .._creep.lags import lag_sum
 from .._linear.base import AbstractLinearSystem
 from .._linear.transfer_function import TransferFunction
 from .._observers.dynamic_impedance import DynamicImpedanceObserver
-from .common import AbstractBench, Record, bench_param, bench_signal, lag, measure, replace_fields
+from .common import AbstractSelfSensingBench, Record, bench_param, bench_signal, lag, measure, replace_fields
 
 
 def unimorph_dynamics(static_gain: float = 1e-7, corner_hz: float = 30.0, resonance_hz: float = 380.0,
@@ -26,7 +26,7 @@ def unimorph_dynamics(static_gain: float = 1e-7, corner_hz: float = 30.0, resona
     return TransferFunction([static_gain * w1 * wn**2], np.polymul([1.0, w1], [1.0, 2 * damping * wn, wn**2]))
 
 
-class BafumbaBench(AbstractBench):
+class BafumbaBench(AbstractSelfSensingBench):
     r"""Virtual bench of paper 000 (Bafumba Liseli et al. 2018), richer than its observer.
 
     Truth, per sample ($dt = 1/f_s$):

@@ -11,10 +11,10 @@ from .._control.base import AbstractPlant
 from .._hysteresis.bouc_wen import BoucWen
 from .._linear.transfer_function import TransferFunction
 from .._observers.sensor_layer import SensorLayerObserver
-from .common import AbstractBench, Record, adc, bench_param, bench_signal, lag, measure, replace_fields
+from .common import AbstractSelfSensingBench, Record, adc, bench_param, bench_signal, lag, measure, replace_fields
 
 
-class ChenBench(AbstractBench):
+class ChenBench(AbstractSelfSensingBench):
     r"""Virtual bench of paper 002 (Chen & Li 2014), richer than the eq. (9) observer.
 
     Truth: a rate-dependent stack displacement $x_a = s_x\,(h + \kappa\,\mathcal{L}_{\tau_c}[h])$ with

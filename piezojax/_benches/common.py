@@ -41,12 +41,13 @@ class Record(eqx.Module):
 
 
 class AbstractBench(eqx.Module):
-    """A seeded virtual bench: a truth model richer than the paper's observer, plus the lab's acquisition.
+    """A seeded virtual bench: a truth model richer than the paper's model or observer, plus the lab's acquisition.
 
     Concrete benches define `record(command, key) -> Record` (one record from rest for the drive samples, seeded
-    by `key`; works under `eqx.filter_jit` and `jax.vmap` over commands and keys), `ideal()` (the same bench without
-    noise, quantisation or drift) and `observer(...)` (the paper's observer with the bench's nominal constants), and
-    carry their `sample_rate` [Hz] and converter resolution `adc_bits` (0: no quantisation) as static fields.
+    by `key`; works under `eqx.filter_jit` and `jax.vmap` over commands and keys) and `ideal()` (the same bench
+    without noise, quantisation or drift), and carry their `sample_rate` [Hz] and converter resolution `adc_bits`
+    (0: no quantisation) as static fields. Self-sensing benches add `observer(...)`
+    (`AbstractSelfSensingBench`).
     """
 
     sample_rate: eqx.AbstractVar[float]
@@ -59,6 +60,12 @@ class AbstractBench(eqx.Module):
     @abc.abstractmethod
     def ideal(self) -> "AbstractBench":
         """The same bench without noise, quantisation or drift."""
+
+
+
+class AbstractSelfSensingBench(AbstractBench):
+    """A bench of a self-sensing paper: also `observer(...)`, the paper's observer with the bench's nominal
+    constants."""
 
     @abc.abstractmethod
     def observer(self, *args, **kwargs) -> AbstractObserver:

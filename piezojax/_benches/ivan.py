@@ -13,7 +13,7 @@ from .._hysteresis.base import AbstractHysteresis
 from .._hysteresis.preisach import GaussianPreisach
 from .._hysteresis.scaled import ScaledHysteresis
 from .._observers.current_integration import ForceDisplacementObserver
-from .common import AbstractBench, Record, bench_param, bench_signal, measure, replace_fields
+from .common import AbstractSelfSensingBench, Record, bench_param, bench_signal, measure, replace_fields
 
 
 def periodic_steps(levels=(-10.0, -20.0), period: float = 4.0, slope: float = 100.0, cycles: int = 3,
@@ -39,7 +39,7 @@ def periodic_steps(levels=(-10.0, -20.0), period: float = 4.0, slope: float = 10
     return np.concatenate(out)
 
 
-class IvanBench(AbstractBench):
+class IvanBench(AbstractSelfSensingBench):
     r"""Virtual bench of paper 001 (Ivan et al. 2009): gap, then contact with a force sensor of finite stiffness.
 
     Truth:
