@@ -200,9 +200,31 @@ class FitResult:
         save_json(folder / "result.json", summary)
         (folder / "report.txt").write_text(self.report() + "\n")
         if figures:
-            from ._plots import plot_result
+            from . import _plots
 
-            plot_result(self, folder)
+            _plots.save_figures(self, folder)
+
+    def plot(self, kind: str = "timeseries", experiment=0):
+        """One figure of the fit (a `matplotlib.figure.Figure`, in engineering units): `kind` is `"timeseries"`
+        (measured, model and residual against time), `"loops"` (against `v_in`), `"parameters"` (relative standard
+        errors and correlations) or `"convergence"` (cost per step); `experiment` (index or name in the fit's
+        dataset) for the first two. See `fitting.plot_timeseries` and its siblings.
+
+        ```python
+        result.plot("loops", experiment="run3").savefig("loops.png")
+        ```
+        """
+        from . import _plots
+
+        if kind == "timeseries":
+            return _plots.plot_timeseries(self, experiment)
+        if kind == "loops":
+            return _plots.plot_loops(self, experiment)
+        if kind == "parameters":
+            return _plots.plot_parameters(self)
+        if kind == "convergence":
+            return _plots.plot_convergence(self)
+        raise PiezojaxValueError(f"`kind` must be 'timeseries', 'loops', 'parameters' or 'convergence', got {kind!r}")
 
 
 def _at_bound(problem, u) -> np.ndarray:

@@ -395,7 +395,7 @@ def test_save_load_atomic(data, tmp_path, monkeypatch):
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fitting_plots, "plot_result", boom)
+    monkeypatch.setattr(fitting_plots, "save_figures", boom)
     with pytest.raises(KeyboardInterrupt):
         res.save(tmp_path / "fit2")
     assert not (tmp_path / "fit2").exists()
