@@ -236,8 +236,9 @@ def _truth(bench, v):
 
 def test_quant_bench_quasi_static_limits_are_analytic():
     # without hysteresis, coupling variation and creep the truth is linear: at 0.2 Hz (far below the 300 Hz mode)
-    # x = T0 V / k, and with a spring load x = T0 V / (k + K_L), once the start's ringing has died out (1 s); the
-    # charge is C0 V + T0 x
+    # x = T0 V / k, and with a spring load x = T0 V / (k + K_L), after the start's ringing (1 s), up to the steady
+    # phase lag of the modes and the amplifier, 2 zeta f / f_n + 2 pi f tau_hv (7e-5 rad: that times the amplitude
+    # bounds the error); the charge is C0 V + T0 x
     plain = pj.QuantBench(hysteresis=pj.charge_preisach(total_charge=0.0), coupling_variation=0.0,
                           creep_fraction=0.0)
     t = np.arange(10000) / plain.sample_rate
@@ -246,7 +247,8 @@ def test_quant_bench_quasi_static_limits_are_analytic():
     for bench, stiff in ((plain, k), (plain.with_load(2e6), k + 2e6)):
         out = _truth(bench, v)
         x = t0 * v / stiff
-        np.testing.assert_allclose(out["x"][t > 1], x[t > 1], rtol=0, atol=2e-5 * np.ptp(x))
+        lag = 2 * 0.03 * 0.2 / 300.0 + 2 * 0.02 * 0.2 / 850.0 + 2 * np.pi * 0.2 * float(bench.hv_time_constant)
+        np.testing.assert_allclose(out["x"][t > 1], x[t > 1], rtol=0, atol=1.2 * lag * np.max(np.abs(x)))
         np.testing.assert_allclose(out["charge"], c0 * v + t0 * np.asarray(out["x"]), rtol=1e-12,
                                    atol=1e-12 * c0 * 100)
         np.testing.assert_allclose(out["strain"], np.asarray(out["x"]) / bench.length, rtol=1e-14)
@@ -294,3 +296,11 @@ def test_quant_bench_bad_input():
         pj.QuantBench(hysteresis=pj.MaxwellSlip(jnp.ones(2), jnp.ones(2)))
     with pytest.raises(pj.PiezojaxValueError, match="capacitance"):
         pj.QuantBench(capacitance=float("nan"))
+    with pytest.raises(pj.PiezojaxValueError, match="`feedback_capacitance` must be > 0"):
+        pj.QuantBench(feedback_capacitance=0.0)
+    with pytest.raises(pj.PiezojaxValueError, match="`participations` must sum to 1"):
+        pj.QuantBench(participations=(0.9, 0.06))
+    with pytest.raises(pj.PiezojaxValueError, match="`stiffness` must be a scalar"):
+        pj.QuantBench(stiffness=(1e6, 2e6))
+    with pytest.raises(pj.PiezojaxValueError, match="`mass` must be >= 0"):
+        pj.QuantBench().with_load(1e6, -0.1)

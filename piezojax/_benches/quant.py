@@ -4,9 +4,10 @@ gauge and a charge amplifier (the thesis' characterisation set-up, Ch. 4)."""
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
-from .._checks import PiezojaxValueError
+from .._checks import PiezojaxValueError, concrete_or_none
 from .._creep.lags import lag_sum
 from .._hysteresis.preisach import Preisach
 from .._linear.state_space import StateSpace
@@ -29,6 +30,34 @@ def charge_preisach(total_charge: float = 8.0e-6, levels: int = 40, v_max: float
     w = jnp.exp(-0.5 * ((r - centre) / spread) ** 2 - 0.5 * ((m - bias) / bias_spread) ** 2)
     mu = total_charge * w / jnp.sum(w)
     return Preisach(op.alpha, op.beta, mu, 0.0, v_max / levels)
+
+
+_POSITIVE = ("capacitance", "coupling_voltage", "creep_time", "stiffness", "hv_time_constant", "feedback_capacitance",
+             "frequencies", "participations")
+_NONNEGATIVE = ("creep_fraction", "dampings", "load_stiffness", "load_mass", "load_damping")
+_MODES = ("frequencies", "dampings", "participations")
+
+
+def _check_fields(bench: "QuantBench", names: dict[str, str] | None = None) -> None:
+    """Concrete checks of the bench's numbers (skipped for traced values): scalars where one is expected, signs,
+    and participations summing to 1; `PiezojaxValueError` naming the argument (`names` maps fields to the names
+    the caller used)."""
+    names = names or {}
+    for field in _POSITIVE + _NONNEGATIVE + ("coupling", "coupling_variation"):
+        value = concrete_or_none(getattr(bench, field))
+        if value is None:
+            continue
+        name = names.get(field, field)
+        if field not in _MODES and np.ndim(value) != 0:
+            raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {np.shape(value)}")
+        if field in _POSITIVE and not np.all(value > 0):
+            raise PiezojaxValueError(f"`{name}` must be > 0, got {value}")
+        if field in _NONNEGATIVE and not np.all(value >= 0):
+            raise PiezojaxValueError(f"`{name}` must be >= 0, got {value}")
+    p = concrete_or_none(bench.participations)
+    if p is not None and abs(float(np.sum(p)) - 1) > 1e-9:
+        raise PiezojaxValueError(f"`participations` must sum to 1 (x = F/k at rest), got {np.asarray(p)} "
+                                 f"(sum {float(np.sum(p)):.6g})")
 
 
 class QuantBench(AbstractBench):
@@ -54,9 +83,9 @@ class QuantBench(AbstractBench):
     ±10 V converter. `truth(command)` gives every noise-free signal, the charge included.
 
     Our plausible choices (the thesis' Table 3 and Table 5 are not in our copy of the text): $C_0$ = 90 nF;
-    $L$ = 46 mm; $k$ = 4.1 MN/m and $T_0$ = 0.21 N/V (about 200 µε at 150 V, a coupling factor
-    $T_0^2/(kC_0) \approx 0.12$); modes at 300 and 850 Hz ($\zeta$ 0.03, 0.02, the second carrying 6 %); $a$ = 0.12,
-    $V_a$ = 150 V (d31 12 % higher at +150 V than at 0); creep 2 % with $\tau_c$ = 1.5 s; $\tau_{hv}$ = 20 µs;
+    $L$ = 46 mm; $k$ = 4.1 MN/m and $T_0$ = 0.21 N/V (with the hysteresis, about 240 µε at +150 V and −190 µε at
+    −150 V; a coupling factor $T_0^2/(kC_0) \approx 0.12$); modes at 300 and 850 Hz ($\zeta$ 0.03, 0.02, the second
+    carrying 6 %); $a$ = 0.12, $V_a$ = 150 V (d31 9 % higher at +150 V than at 0, 9 % lower at −150 V); creep 2 % with $\tau_c$ = 1.5 s; $\tau_{hv}$ = 20 µs;
     2 kHz sampling; noise 20 mV on $V$, 0.3 µε on the strain, 1 nC on the charge; $C_f$ = 4 µF.
 
     **Arguments:** every field below can be overridden by keyword.
@@ -140,6 +169,7 @@ class QuantBench(AbstractBench):
         self.hv_time_constant = bench_param(hv_time_constant, "hv_time_constant")
         self.feedback_capacitance = bench_param(feedback_capacitance, "feedback_capacitance")
         self.length = float(length)
+        _check_fields(self)
         self.v_in_noise, self.strain_noise, self.charge_noise = v_in_noise, strain_noise, charge_noise
         self.adc_bits, self.sample_rate = adc_bits, sample_rate
 
@@ -150,9 +180,11 @@ class QuantBench(AbstractBench):
     def with_load(self, stiffness: ArrayLike, mass: ArrayLike = 0.0, damping: ArrayLike = 0.0) -> "QuantBench":
         """The bench with a load at the wafer's elongation: a spring `stiffness` [N/m], a mass `mass` [kg] and a
         damper `damping` [N s/m] (the thesis' cantilever beam as an equivalent stiffness and mass, Ch. 6)."""
-        return eqx.tree_at(lambda b: (b.load_stiffness, b.load_mass, b.load_damping), self,
-                           (bench_param(stiffness, "stiffness"), bench_param(mass, "mass"),
-                            bench_param(damping, "damping")))
+        loaded = eqx.tree_at(lambda b: (b.load_stiffness, b.load_mass, b.load_damping), self,
+                             (bench_param(stiffness, "stiffness"), bench_param(mass, "mass"),
+                              bench_param(damping, "damping")))
+        _check_fields(loaded, {"load_stiffness": "stiffness", "load_mass": "mass", "load_damping": "damping"})
+        return loaded
 
     def mechanics(self) -> StateSpace:
         r"""The modes with the load, from the transducer force to $x$: $M\ddot\eta + C\dot\eta + K\eta = F\mathbf 1$,
