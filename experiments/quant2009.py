@@ -170,26 +170,29 @@ def rising_curve(v: np.ndarray, q: np.ndarray, elements: int = ELEMENTS) -> dict
     r"""Step 1: the Maxwell-slip elements and $C_e$ from the rising curve $V(q)$ from the relaxed state, by NNLS on
     the hinge basis (see the module docstring). **Returns:** `caps`, `limits`, `c_eff`, `q_max`, the RMS
     residual [V]."""
-    top = int(np.argmax(v))
+    # the end of the first rise: the first sample within 0.5 % of the range of the maximum (the measured voltage of
+    # a later peak of the same level may read a converter step higher)
+    top = int(np.argmax(v >= np.max(v) - 0.005 * np.ptp(v)))
     vv, qq = v[: top + 1], q[: top + 1]
     q_max = float(np.max(qq))
     knots = q_max * np.arange(1, elements + 1) / (elements + 1)
     basis = np.column_stack([qq] + [-np.maximum(qq - k, 0.0) for k in knots])
     coef, res = scipy.optimize.nnls(basis, vv)
     s1, drops = coef[0], coef[1:]
-    last = s1 - np.sum(drops)
-    if not last > 0:
-        raise RuntimeError(f"rising curve: the last slope {last:.3g} V/C is not positive; no capacitance")
     # an element with no slope drop (NNLS at its bound) becomes a weak one at its knot (1 % of the mean drop), so
     # that the joint fit can move it: a vanishing one is a near-jump of V_H that traps LM at a kink
     drops = np.maximum(drops, 0.01 * np.mean(drops[drops > 0]) if np.any(drops > 0) else 1e-6 * s1)
+    last = s1 - np.sum(drops)
+    if not last > 0:
+        raise RuntimeError(f"rising curve: the last slope {last:.3g} V/C is not positive; no capacitance")
     caps = 1.0 / drops
     return {"caps": caps, "limits": knots / caps, "c_eff": 1.0 / last, "q_max": q_max,
             "rms_v": float(res / np.sqrt(vv.size))}
 
 
 def _frf(u: np.ndarray, y: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray]:
-    """The response y/u by Welch's cross-spectrum (1 Hz bins), in `FIT_BAND`, where the coherence exceeds 0.9."""
+    """The response y/u by Welch's cross-spectrum (1 Hz bins; coarser for records under 2 s), in `FIT_BAND`, where
+    the coherence exceeds 0.9."""
     n = min(int(rate), u.size // 2)
     f, puy = scipy.signal.csd(u, y, fs=rate, nperseg=n)
     _, puu = scipy.signal.welch(u, fs=rate, nperseg=n)

@@ -48,15 +48,16 @@ def test_quant2009_quick(tmp_path):
     f_r = np.sqrt(st["params"]["k_N_per_m"] / st["params"]["m_kg"]) / (2 * np.pi)
     assert abs(f_r / bench["frequencies_Hz"][0] - 1) < 0.05
     assert 0.08 < st["coupling_factor"] < 0.2
-    # the joint fit lowers the cost many times over (measured 7.8 -> 0.18 in 30 steps)
+    # the joint fit lowers the cost many times over (measured 7.7 -> 0.18 in the 25 steps of --quick)
     assert jt["cost"] < 0.1 * jt["initial_cost"]
     table = report["validation"]
     assert len(table) == 5
     for name, row in table.items():
-        # every validation signal within a few % of range, the sines within 1 % RMS after the joint fit
-        for way in ("staged", "joint"):
+        # every validation signal within a few % of range (the staged strain of the zero-centred sine: 8.6 %, its
+        # d31(V) measured at positive voltages only), the sines within 1 % RMS after the joint fit
+        for way, bound in (("staged", 15.0), ("joint", 3.0)):
             for channel in ("strain", "charge"):
-                assert row[way][channel]["rms_percent"] < 10, (name, way, channel)
+                assert row[way][channel]["rms_percent"] < bound, (name, way, channel)
         if "sine" in name or "triangle" in name:
             assert row["joint"]["strain"]["rms_percent"] < 1.0, name
             assert row["joint"]["charge"]["rms_percent"] < 1.0, name
@@ -73,7 +74,7 @@ def test_quant2009_quick(tmp_path):
     # the cantilever: the model with the load's stiffness and mass added predicts the loaded strain far better
     for name in ("1 Hz zero-centred sine", "150 V 10 Hz rectangle"):
         rows = report["load"][name]
-        assert rows["model with the load"]["strain"]["rms_percent"] < 3.0
+        assert rows["model with the load"]["strain"]["rms_percent"] < 4.0  # measured 2.6 and 1.7 %
         assert rows["model ignoring the load"]["strain"]["rms_percent"] > 4 * rows["model with the load"]["strain"][
             "rms_percent"]
     for f in ("report.json", "loops.png", "time_series.png", "inverse.png", "load.png"):
