@@ -176,7 +176,7 @@ def plot_parameters(result, max_parameters: int = 40):
     status = list(result.std_error_status)[:n]
     rel = np.where((np.asarray(status) == "finite") & (vals != 0), 100 * errs / np.maximum(np.abs(vals), 1e-300),
                    np.nan)
-    fig, axes = _figure(1, 2, (10, 0.28 * n + 2.0), gridspec_kw={"width_ratios": [1, 1.2]})
+    fig, axes = _figure(1, 2, (10, 0.2 * n + 1.8), gridspec_kw={"width_ratios": [1, 1]})
     ax, axc = axes[0]
     y = np.arange(n)
     finite = np.isfinite(rel)
@@ -186,16 +186,17 @@ def plot_parameters(result, max_parameters: int = 40):
     for i in np.nonzero(~finite)[0]:
         text = {"infinite": "inf", "at a bound": "at bound"}.get(status[i], "n/a")
         ax.text(top, i, f" {text}", va="center", fontsize=8, color="C3")
-    ax.set_yticks(y, names, fontsize=7)
+    ax.set_yticks(y, [f"{name} ({i})" for i, name in enumerate(names)], fontsize=7)
     ax.invert_yaxis()
     ax.set(xlabel="standard error [% of value]", title="parameter uncertainty")
     c = np.asarray(result.correlation, float)[:n, :n]
     im = axc.imshow(np.where(np.isfinite(c), c, np.nan), vmin=-1, vmax=1, cmap="RdBu_r")
-    axc.set_xticks(y, names, rotation=90, fontsize=6)
-    axc.set_yticks(y, names, fontsize=6)
+    step = 1 if n <= 15 else 5  # the parameters by their number in the left panel
+    axc.set_xticks(y[::step], [str(i) for i in y[::step]], fontsize=7)
+    axc.set_yticks(y[::step], [str(i) for i in y[::step]], fontsize=7)
     axc.grid(False)
-    axc.set_title("correlation")
-    fig.colorbar(im, ax=axc, shrink=0.8, label="correlation [-]")
+    axc.set(title="correlation (parameter numbers)")
+    fig.colorbar(im, ax=axc, shrink=0.6, label="correlation [-]")
     return fig
 
 

@@ -67,7 +67,8 @@ def test_figures_carry_units_and_no_offsets(result):
     par = result.plot("parameters")
     par.canvas.draw()
     assert "standard error [% of value]" in _labels(par)
-    assert [t.get_text() for t in par.axes[0].get_yticklabels()] == result.parameter_names
+    assert [t.get_text() for t in par.axes[0].get_yticklabels()] == [f"{n} ({i})" for i, n in
+                                                                     enumerate(result.parameter_names)]
     conv = result.plot("convergence")
     conv.canvas.draw()
     assert conv.axes[0].get_yscale() == "log" and conv.axes[0].get_xlabel() == "step [-]"
