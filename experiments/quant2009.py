@@ -48,7 +48,7 @@ tables. What is reconstructed here, and how:
   model with the load's stiffness and mass added to $k$ and $m$ (the model's mechanics are one mode at $x$), against
   the same model ignoring the load.
 
-Measured (`python -m experiments.quant2009`, 239 s on 2 cores, the joint fit 194 s): the staged steps find the first
+Measured (`python -m experiments.quant2009`, 249 s on 2 cores, the joint fit 204 s): the staged steps find the first
 resonance at 294 Hz (truth 300) and a coupling factor $T^2/(Ck)$ of 0.14 (the truth's 0.12, with the Preisach's
 small-signal charge in $C$); the joint fit lowers the cost from 16 to 0.36. Validation, strain RMS / max in % of
 range, staged → joint: zero-centred sine 9.3 / 20 → 0.45 / 1.4 (the staged $d_{31}(V)$ is measured on positive
@@ -170,9 +170,10 @@ def rising_curve(v: np.ndarray, q: np.ndarray, elements: int = ELEMENTS) -> dict
     r"""Step 1: the Maxwell-slip elements and $C_e$ from the rising curve $V(q)$ from the relaxed state, by NNLS on
     the hinge basis (see the module docstring). **Returns:** `caps`, `limits`, `c_eff`, `q_max`, the RMS
     residual [V]."""
-    # the end of the first rise: the first sample within 0.5 % of the range of the maximum (the measured voltage of
-    # a later peak of the same level may read a converter step higher)
-    top = int(np.argmax(v >= np.max(v) - 0.005 * np.ptp(v)))
+    # the end of the first rise: the largest voltage before the first fall of 2 % of the range below the running
+    # maximum (the measured voltage of a later peak of the same level may read a converter step higher)
+    fell = np.nonzero(v < np.maximum.accumulate(v) - 0.02 * np.ptp(v))[0]
+    top = int(np.argmax(v[: fell[0] if fell.size else v.size]))
     vv, qq = v[: top + 1], q[: top + 1]
     q_max = float(np.max(qq))
     knots = q_max * np.arange(1, elements + 1) / (elements + 1)

@@ -25,6 +25,13 @@ def test_rising_curve_recovers_maxwell_slip_elements():
     np.testing.assert_allclose(fit["caps"], caps, rtol=1e-8)
     np.testing.assert_allclose(fit["limits"], limits, rtol=1e-8)
     np.testing.assert_allclose(fit["c_eff"], c_eff, rtol=1e-8)
+    # a second peak of the same level reading a little higher (converter noise) does not change the rise used
+    down = np.linspace(q_max, -q_max, 3001)
+    v_down = np.asarray(pj.MaxwellSlip.electrical(jnp.asarray(caps), jnp.asarray(limits))(
+        jnp.asarray(np.concatenate([q, down, down[::-1]]))))[q.size:] + np.concatenate([down, down[::-1]]) / c_eff
+    later = np.concatenate([v, v_down + 1e-3 * (np.arange(v_down.size) >= down.size)])  # the second rise higher
+    again = quant2009.rising_curve(later, np.concatenate([q, down, down[::-1]]))
+    np.testing.assert_allclose(again["caps"], caps, rtol=1e-8)
 
 
 def test_second_order_fit_recovers_gain_frequency_and_damping():

@@ -2,7 +2,6 @@
 top to bottom as one, with its small settings (`PIEZOJAX_NOTEBOOK_SMALL=1`): nbclient executes it in a fresh
 kernel, so the asserts inside each notebook (its checks on its own results) run too."""
 
-import os
 from pathlib import Path
 
 import pytest
@@ -19,7 +18,7 @@ def test_the_notebooks_are_there():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_runs(path, monkeypatch):
+def test_notebook_runs(path, monkeypatch, tmp_path):
     import jupytext
     import nbformat
     from nbclient import NotebookClient
@@ -30,7 +29,8 @@ def test_notebook_runs(path, monkeypatch):
     assert sum(c.cell_type == "code" for c in nb.cells) >= 4
     monkeypatch.setenv("PIEZOJAX_NOTEBOOK_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    monkeypatch.setenv("PIEZOJAX_CACHE_DIR", os.environ.get("PIEZOJAX_CACHE_DIR", "off"))
+    # a compilation cache of its own: the command line run by notebook 02 reuses the programs its kernel compiled
+    monkeypatch.setenv("PIEZOJAX_CACHE_DIR", str(tmp_path / "xla"))
     client = NotebookClient(nb, timeout=600, kernel_name="python3",
                             resources={"metadata": {"path": str(path.parent)}})
     client.execute()  # raises CellExecutionError (with the cell and traceback) on the first failing cell

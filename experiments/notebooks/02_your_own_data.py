@@ -79,7 +79,8 @@ plt.show()
 #
 # `config.starts(data)` builds the initial models from the data (a rule-based start and a joint cold start); they
 # are fitted together and the best is kept, by Levenberg–Marquardt on the weighted residuals (each channel divided
-# by its range). This is exactly what `piezojax fit` runs.
+# by its range). These are the starts and the solver `piezojax fit` runs (the command adds one re-seeding step,
+# below).
 
 # %%
 data = fitting.Dataset([train])
