@@ -62,7 +62,6 @@ class AbstractBench(eqx.Module):
         """The same bench without noise, quantisation or drift."""
 
 
-
 class AbstractSelfSensingBench(AbstractBench):
     """A bench of a self-sensing paper: also `observer(...)`, the paper's observer with the bench's nominal
     constants."""
