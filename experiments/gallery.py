@@ -87,6 +87,8 @@ def fit_150v(folder: Path) -> dict[str, Path]:
                          targets=targets, free=config.fit_free(targets), weights=config.weights,
                          smoothing=config.smoothing, max_steps=config.max_steps, method=config.method,
                          progress=False)
+    if result.code == "interrupted":  # Ctrl-C: the solver returned its last point; draw nothing from it
+        raise KeyboardInterrupt
     out = {"timeseries": result.plot("timeseries"), "loops": result.plot("loops"),
            "parameters": result.plot("parameters")}
     pred = fitting.predict(result.model, test, predictor=config.predictor(), history=train)["displacement"]

@@ -273,6 +273,8 @@ def joint(start: pj.ElectromechanicalActuator, recs: dict, dt: float, max_steps:
     t0 = time.perf_counter()
     result = fitting.fit(model, fitting.Dataset(exps), predictor=PREDICTOR, free=free, max_steps=max_steps,
                          progress=False)
+    if result.code == "interrupted":  # Ctrl-C: the solver returned its last point; stop rather than report it
+        raise KeyboardInterrupt
     return {"model": pj.unwrap(result.model), "seconds": time.perf_counter() - t0, "steps": int(result.steps),
             "verdict": result.code, "initial_cost": float(result.initial_cost), "cost": float(result.cost)}
 
