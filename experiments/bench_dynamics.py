@@ -8,7 +8,9 @@ Prints, in one run and on the same machine (float64, XLA:CPU unless JAX is told 
    next to `scipy.signal.lfilter` on the ZOH-discretised polynomials and a numba loop over the same state-space
    recursion;
 2. the composed `Actuator` (Prandtl–Ishlinskii with 16 plays + a 2-lag Kelvin–Voigt creep in parallel + a 2nd-order
-   dynamics, with charge and current) on 1e6 samples, next to a numba loop of the same model;
+   dynamics, with charge and current) on 1e5 and 1e6 samples, next to a numba loop of the same model: `simulate`
+   (its one-loop pass) and the block-by-block pass (each block its own loop, which its derivatives run), timed in
+   turn;
 3. the forward-mode Jacobian (`jax.jacfwd` with respect to every parameter: 5 for the linear block, 42 for the
    actuator — the PI smoothing is held at 0, the exact operator) on 1e5 samples (1e6 × 42 × 3 outputs in float64
    would be 1 GB), next to the baseline users run today: a forward-difference Jacobian of the numba loop (P + 1
@@ -154,6 +156,26 @@ def plain_autodiff_pi():
         PrandtlIshlinskii._run = fast
 
 
+def _blocks_pass(act, v, dt):
+    """`act.simulate` block by block (each block's own loop): the pass `simulate` differentiates."""
+    from piezojax._actuator import _blocks
+
+    m, v, dt = act._prepare(v, dt, "zoh")
+    return _blocks(m, v, dt, "zoh", m._initial(v.dtype))
+
+
+def interleaved_best(fns, repeats):
+    """The best time of each of `fns` over `repeats` rounds, the functions called in turn within each round (so that
+    a slow spell of a shared machine hits all of them)."""
+    times = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, ts in zip(fns, times):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            ts.append(time.perf_counter() - t0)
+    return [min(ts) for ts in times]
+
+
 def best_time(fn, repeats):
     times = []
     for _ in range(repeats):
@@ -250,34 +272,49 @@ def main(argv=None):
     t = np.arange(n_fwd) * dt
     v = 40 * np.abs(2 * ((3 * t) % 1.0) - 1) * (1 + 0.5 * np.sin(2 * np.pi * 0.7 * t)) + rng.normal(0, 0.1, n_fwd)
     vj = jnp.asarray(v)
-    # every parameter traced (as in fitting) except the PI smoothing, held at the exact operator
+    # every parameter traced (as in fitting) except the PI smoothing, held at the exact operator, and the offset (the
+    # numba loop has none)
     spec = jax.tree_util.tree_map(eqx.is_inexact_array, act)
-    spec = eqx.tree_at(lambda a: a.hysteresis.smoothing, spec, False)
+    spec = eqx.tree_at(lambda a: (a.hysteresis.smoothing, a.offset), spec, (False, False))
     a_params, a_static = eqx.partition(act, spec)
     sim_a = jax.jit(lambda p, x: eqx.combine(p, a_static).simulate(x, dt))
-    o = sim_a(a_params, vj)
-    jax_d, jax_q, jax_i = (np.asarray(x) for x in (o.displacement, o.charge, o.current))
-    t_jax_a = best_time(lambda: sim_a(a_params, vj), repeats)
-
+    # the block-by-block pass (each block its own loop; what `simulate` ran before the one-loop pass, and what its
+    # derivatives still run), for the same-run comparison
+    sim_blocks = jax.jit(lambda p, x: _blocks_pass(eqx.combine(p, a_static), x, dt))
     flat0 = np.concatenate([w, r, [1.0], [8.0, 25.0], [0.05, 2.0], [1e-7, 2 * np.pi * 200, 0.1, 1.7e-9, 2e-3]])
     act_loop = _njit(_actuator_loop)
     nd, nq, ni = np.empty(n_fwd), np.empty(n_fwd), np.empty(n_fwd)
-    inputs = numba_actuator_inputs(flat0, dt)
-    act_loop(v[:10], *inputs, nd[:10], nq[:10], ni[:10])  # compile
-    t_nb_a = best_time(lambda: act_loop(v, *numba_actuator_inputs(flat0, dt), nd, nq, ni), repeats)
+    act_loop(v[:10], *numba_actuator_inputs(flat0, dt), nd[:10], nq[:10], ni[:10])  # compile
     print(
         f"\n2. Actuator: PI ({n_play} plays) + Kelvin–Voigt creep (2 lags, parallel) + 2nd-order dynamics, "
-        f"with charge and current, {n_fwd:.0e} samples"
+        "with charge and current (one-loop pass; the block-by-block pass; numba), runs interleaved"
     )
-    print(
-        "   agreement (max abs diff / max abs value): "
-        f"displacement {np.abs(jax_d - nd).max() / np.abs(nd).max():.1e}, "
-        f"charge {np.abs(jax_q - nq).max() / np.abs(nq).max():.1e}, "
-        f"current {np.abs(jax_i - ni).max() / np.abs(ni).max():.1e}"
-    )
-    _row("jax Actuator.simulate (jit, params traced)", t_jax_a, n_fwd)
-    _row(base_name + " (same model)", t_nb_a, n_fwd)
-    print(f"   ratio jax/numba {t_jax_a / t_nb_a:.2f}x")
+    t_jax_a = t_nb_a = None
+    for n in sorted({min(n_fwd, 100_000), n_fwd}):
+        x, xj = v[:n], vj[:n]
+        o, ob = sim_a(a_params, xj), sim_blocks(a_params, xj)
+        act_loop(x, *numba_actuator_inputs(flat0, dt), nd[:n], nq[:n], ni[:n])
+        diffs = [
+            max(np.abs(np.asarray(getattr(a, f)) - ref).max() / np.abs(ref).max() for a in (o, ob))
+            for f, ref in (("displacement", nd[:n]), ("charge", nq[:n]), ("current", ni[:n]))
+        ]
+        t_one, t_blk, t_nb = interleaved_best(
+            [
+                lambda xj=xj: sim_a(a_params, xj),
+                lambda xj=xj: sim_blocks(a_params, xj),
+                lambda x=x, n=n: act_loop(x, *numba_actuator_inputs(flat0, dt), nd[:n], nq[:n], ni[:n]),
+            ],
+            3 * repeats,
+        )
+        print(
+            f"   {n:.0e} samples: agreement with numba (max abs diff / max abs value) displacement {diffs[0]:.1e}, "
+            f"charge {diffs[1]:.1e}, current {diffs[2]:.1e}"
+        )
+        _row("jax Actuator.simulate (jit, params traced)", t_one, n)
+        _row("jax block by block", t_blk, n)
+        _row(base_name + " (same model)", t_nb, n)
+        print(f"   ratio jax/numba {t_one / t_nb:.2f}x (block by block {t_blk / t_nb:.2f}x)")
+        t_jax_a, t_nb_a = t_one, t_nb
 
     # -- 3. Jacobians ---------------------------------------------------------------------------------------------
     print(f"\n3. Forward-mode Jacobians on {n_jac:.0e} samples (1e6 would need ~1 GB for the actuator's)")

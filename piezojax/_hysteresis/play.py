@@ -32,7 +32,7 @@ from .._custom_types import ScalarLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
 from .._scans import affine_scan, clamp_scan
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, AbstractOutputMap
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Pure step functions (also used by other operators, e.g. the smooth Preisach form).
@@ -564,3 +564,25 @@ class StopOperator(_AbstractStopCell):
 
     def _output(self, v, z):
         return z
+
+
+def exact_cell(op: AbstractHysteresis):
+    """The exact per-sample update of `op`, `step(state, v) -> (state, y)` from `op.init()`'s state, or None.
+
+    Defined for the stop cells (`PlayOperator`, `StopOperator`, `PrandtlIshlinskii`, `GaussianPreisach`) and the
+    output maps of them (`ScaledHysteresis`, `OutputPolynomial`); the caller makes sure `op.smoothing` is 0. No
+    checks: the body of `pj.Actuator`'s one-loop forward pass, which attaches `op.check()` first.
+    """
+    if isinstance(op, AbstractOutputMap):
+        inner = exact_cell(op.hysteresis)
+        if inner is None:
+            return None
+
+        def step(state, v):
+            state, h = inner(state, v)
+            return state, op.shape(h)
+
+        return step
+    if isinstance(op, _AbstractStopCell):
+        return lambda state, v: op._step(state, v, True)
+    return None

@@ -187,15 +187,16 @@ class DiscreteStateSpace(eqx.Module):
 
         if use_parallel_scan(u.shape[0]):
             return _scan_parallel(delta, Bd, Cd, Dd, state, u)
-
-        def step(xi, uk):
-            # Elementwise products and sums, not `dot`: under jacfwd XLA:CPU runs a batched dot_general inside a
-            # scan ~40x slower than the same arithmetic written elementwise (measured in experiments.bench_dynamics).
-            y = jnp.sum(Cd * xi) + Dd * uk
-            return xi + (jnp.sum(delta * xi[None, :], axis=1) + Bd * uk), y
-
         # unroll=1: fastest for small carries on XLA:CPU (measured in _hysteresis/base.py for the same scan shape).
-        return jax.lax.scan(step, state, u)
+        return jax.lax.scan(lambda xi, uk: self.step(xi, uk), state, u)
+
+    def step(self, xi: Array, uk: Array) -> tuple[Array, Array]:
+        r"""One sample without checks: `(xi_next, y_k)`, $y_k = C_d \xi_k + D_d u_k$ and
+        $\xi_{k+1} = \xi_k + (\Delta \xi_k + B_d u_k)$ (the body of `scan` and of `pj.Actuator`'s one-loop pass)."""
+        # Elementwise products and sums, not `dot`: under jacfwd XLA:CPU runs a batched dot_general inside a scan
+        # ~40x slower than the same arithmetic written elementwise (measured in experiments.bench_dynamics).
+        y = jnp.sum(self.Cd * xi) + self.Dd * uk
+        return xi + (jnp.sum(self.delta * xi[None, :], axis=1) + self.Bd * uk), y
 
     def simulate(self, u: SignalLike, state: ArrayLike | None = None) -> Signal:
         """The output for input samples `u` from the discrete state `state` (default zeros); see `scan`."""
