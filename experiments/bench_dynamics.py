@@ -290,6 +290,7 @@ def main(argv=None):
         "with charge and current (one-loop pass; the block-by-block pass; numba), runs interleaved"
     )
     t_jax_a = t_nb_a = None
+    actuator_agreement = 0.0
     for n in sorted({min(n_fwd, 100_000), n_fwd}):
         x, xj = v[:n], vj[:n]
         o, ob = sim_a(a_params, xj), sim_blocks(a_params, xj)
@@ -315,6 +316,7 @@ def main(argv=None):
         _row(base_name + " (same model)", t_nb, n)
         print(f"   ratio jax/numba {t_one / t_nb:.2f}x (block by block {t_blk / t_nb:.2f}x)")
         t_jax_a, t_nb_a = t_one, t_nb
+        actuator_agreement = max(actuator_agreement, *diffs)
 
     # -- 3. Jacobians ---------------------------------------------------------------------------------------------
     print(f"\n3. Forward-mode Jacobians on {n_jac:.0e} samples (1e6 would need ~1 GB for the actuator's)")
@@ -439,6 +441,14 @@ def main(argv=None):
         "actuator": (t_jax_a, t_nb_a),
         "jacobian": (t_jac_g, t_jac_a, t_fd),
         "jacobian_plain_autodiff": t_jac_ad,
+        # max relative differences: the linear block and the actuator's passes against numba, the PI rule against
+        # autodiff, the actuator's displacement Jacobian against numba finite differences
+        "agreement": {
+            "linear": float(np.abs(y_jax - out).max() / scale),
+            "actuator": actuator_agreement,
+            "rule": float(rule_err),
+            "finite_differences": float(agree),
+        },
     }
 
 
