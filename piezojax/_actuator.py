@@ -292,8 +292,8 @@ class Actuator(eqx.Module):
 # ~15-25 ns per sample whatever little it does, so the forward pass of an exact PI + creep + dynamics chain took
 # ~3x a compiled loop's time. The one-loop pass runs the three blocks' per-sample cells in one `lax.scan`
 # (`experiments.bench_dynamics` measures both against numba). It is the value of a
-# `jax.custom_jvp` whose derivative rule is the block-by-block pass's: derivatives (and the values they come with)
-# are exactly those of the blocks.
+# `jax.custom_jvp` whose derivative rule is the block-by-block pass's: derivatives (and the values they come with,
+# which differ from the one-loop values by rounding) are exactly those of the blocks.
 # ---------------------------------------------------------------------------------------------------------------------
 
 
@@ -319,8 +319,8 @@ def _outputs(m: Actuator, v: Array, dt: Array, initial, delta: Array) -> Actuato
 
 
 def _one_loop(m: Actuator, v: Array, hold: str) -> bool:
-    """Whether `simulate` runs the one-loop pass: zero-order hold, sequential loops (the CPU by default, see
-    `pj.set_parallel_scans`), a play/stop-cell hysteresis (or none) that is not concretely smooth, and a creep with
+    """Whether `simulate` runs the one-loop pass: zero-order hold, sequential loops (see `pj.set_parallel_scans`: by
+    default on the CPU, and for records shorter than `PARALLEL_MIN_LENGTH` on an accelerator), a play/stop-cell hysteresis (or none) that is not concretely smooth, and a creep with
     a finite state (or none)."""
     if hold != "zoh" or use_parallel_scan(v.shape[0]):
         return False
@@ -332,10 +332,21 @@ def _one_loop(m: Actuator, v: Array, hold: str) -> bool:
 
 
 def _one_loop_or_blocks(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOutput:
-    dynamic, static = eqx.partition((m, v, dt, initial), eqx.is_array)
+    # The blocks' parameter checks and the cells (the discretisation checks its matrices) before the values become
+    # inputs of the custom_jvp, where they are traced: a model with concrete parameters closed over in `jit` still
+    # raises `PiezojaxValueError` at once, as block by block.
+    if m.hysteresis is not None:
+        m = eqx.tree_at(lambda a: a.hysteresis, m, m.hysteresis.check())
+    if m.creep is not None:
+        m = eqx.tree_at(lambda a: a.creep, m, m.creep.check())
+    cells = (
+        None if m.creep is None else zoh_cell(m.creep, dt),
+        None if m.dynamics is None else m.dynamics.discretise(dt, "zoh"),
+    )
+    dynamic, static = eqx.partition((m, v, dt, initial, cells), eqx.is_array)
 
     def blocks(dynamic):
-        m, v, dt, initial = eqx.combine(dynamic, static)
+        m, v, dt, initial, _ = eqx.combine(dynamic, static)
         return _blocks(m, v, dt, "zoh", initial)
 
     def one_loop(dynamic):
@@ -348,30 +359,42 @@ def _one_loop_or_blocks(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOu
             return jax.lax.cond(smoothing == 0, one_loop, blocks, dynamic)
         return one_loop(dynamic)
 
-    @outputs.defjvp
-    def _(primals, tangents):
-        return jax.jvp(blocks, primals, tangents)
+    def rule(primals, tangents):
+        # Only the leaves with a tangent are differentiated: the others (the signal, dt, fixed parameters) stay
+        # "no tangent" for the blocks' own rules, which then skip their input-tangent loops.
+        leaves, treedef = jax.tree_util.tree_flatten(primals[0])
+        dleaves = treedef.flatten_up_to(tangents[0])
+        live = [i for i, d in enumerate(dleaves) if not isinstance(d, jax.custom_derivatives.SymbolicZero)]
 
+        def of_live(*xs):
+            full = list(leaves)
+            for i, x in zip(live, xs, strict=True):
+                full[i] = x
+            return blocks(jax.tree_util.tree_unflatten(treedef, full))
+
+        if not live:
+            out = of_live()
+            return out, jax.tree_util.tree_map(jnp.zeros_like, out)
+        return jax.jvp(of_live, [leaves[i] for i in live], [dleaves[i] for i in live])
+
+    outputs.defjvp(rule, symbolic_zeros=True)
     return outputs(dynamic)
 
 
-def _one_loop_pass(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOutput:
-    """The exact chain's outputs, every block's cell in one `lax.scan`."""
+def _one_loop_pass(m: Actuator, v: Array, dt: Array, initial, cells) -> ActuatorOutput:
+    """The exact chain's outputs, every block's cell in one `lax.scan` (the blocks already checked, `cells` the
+    creep's and the dynamics' ZOH cells)."""
     state, h_r = initial
-    hysteresis = None if m.hysteresis is None else m.hysteresis.check()
-    step_h = None if hysteresis is None else exact_cell(hysteresis)
-    if hysteresis is not None and state is None:
-        state = hysteresis.init()
+    step_h = None if m.hysteresis is None else exact_cell(m.hysteresis)
+    if m.hysteresis is not None and state is None:
+        state = m.hysteresis.init()
     zero = jnp.zeros((), v.dtype)
-    creep, shift, settled = None, zero, zero
-    if m.creep is not None:
-        creep = zoh_cell(m.creep.check(), dt)
-        if m.structure == "series" and initial[0] is not None:
-            # settled at the remanent input h_r: settled_gain * h_r + C[h - h_r], as `AbstractCreep.simulate`
-            shift, settled = h_r, m.creep.settled_gain() * h_r
-    dynamics = None
-    if m.dynamics is not None:
-        dynamics = m.dynamics.discretise(dt, "zoh")
+    creep, dynamics = cells
+    shift = settled = zero
+    if m.creep is not None and m.structure == "series" and initial[0] is not None:
+        # settled at the remanent input h_r: settled_gain * h_r + C[h - h_r], as `AbstractCreep.simulate`
+        shift, settled = h_r, m.creep.settled_gain() * h_r
+    if dynamics is not None:
         x0 = None if initial[0] is None else m.dynamics.equilibrium_state(m._rest_drive(initial))
         xi_d = dynamics.init_state(x0, zero)
     xi_c = None if creep is None else jnp.zeros((creep.order,), v.dtype)

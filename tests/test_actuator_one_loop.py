@@ -1,5 +1,7 @@
 """`pj.Actuator`'s one-loop forward pass: the same outputs as the block-by-block pass, whose derivatives it uses."""
 
+import re
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -8,6 +10,7 @@ import pytest
 
 import piezojax as pj
 from piezojax import _actuator
+from piezojax._checks import refusal_mode
 
 DT = 1e-3
 N = 400
@@ -34,7 +37,9 @@ CONFIGS = {
     ),
     "no hysteresis": pj.Actuator(None, KV, DYN, capacitance=1e-9),
     "no creep, prehistory": pj.Actuator(PI, None, DYN, coupling=1e-3, prehistory=-6.0),
-    "Gaussian Preisach, parallel": pj.Actuator(pj.GaussianPreisach(0.02, 8.0, 6.0, w0=0.9, r_max=20.0, n=12), KV, DYN, coupling=1e-3),
+    "Gaussian Preisach, parallel": pj.Actuator(
+        pj.GaussianPreisach(0.02, 8.0, 6.0, w0=0.9, r_max=20.0, n=12), KV, DYN, coupling=1e-3
+    ),
 }
 
 
@@ -104,6 +109,11 @@ def test_derivatives_are_the_blocks():
     one_loop = outputs(lambda a, v: a.simulate(v, DT))
     reference = outputs(blocks)
     np.testing.assert_array_equal(jax.jit(jax.jacfwd(one_loop))(flat), jax.jit(jax.jacfwd(reference))(flat))
+    # the same loops over the record as the blocks: leaves without a tangent (the signal, dt) stay symbolic zeros
+    # for the blocks' rules, which then skip their input-tangent loops
+    loops = [len(re.findall(rf"scan\[[^\]]*?length={N}\b", str(jax.make_jaxpr(jax.jacfwd(f))(flat)).replace("\n", " ")))
+             for f in (one_loop, reference)]
+    assert loops[0] == loops[1] >= 3, loops
 
     def cost(f):
         return lambda p: jnp.sum(f(p)[0] ** 2) * 1e12
@@ -135,6 +145,13 @@ def test_traced_smoothing_and_vmap():
 def test_parameter_checks_still_attached():
     act = CONFIGS["parallel PI, Kelvin-Voigt, 4th order"]
     descending = eqx.tree_at(lambda a: a.hysteresis.thresholds, act, jnp.asarray([5.0, 2.0, 0.0]))
+    # concrete parameters closed over in `jit` raise at once, as block by block; also in fitting's refusal mode
+    with pytest.raises(pj.PiezojaxValueError, match="thresholds"):
+        jax.jit(lambda v: descending.simulate(v, DT))(jnp.asarray(V))
+    with refusal_mode("nan"), pytest.raises(pj.PiezojaxValueError, match="time_constants"):
+        bad_creep = eqx.tree_at(lambda a: a.creep.time_constants, act, jnp.asarray([-0.05, 0.5]))
+        jax.jit(lambda v: bad_creep.simulate(v, DT))(jnp.asarray(V))
+    # traced: the runtime check
     with pytest.raises(Exception, match="thresholds"):
         jax.block_until_ready(jax.jit(lambda a: a.simulate(jnp.asarray(V), DT))(descending))
     negative = eqx.tree_at(lambda a: a.creep.time_constants, act, jnp.asarray([-0.05, 0.5]))
