@@ -49,7 +49,10 @@ from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
 from ._creep.lag import LagCreep as LagCreep
 from ._creep.linear import LinearCreep as LinearCreep
 from ._creep.logarithmic import LogarithmicCreep as LogarithmicCreep
-from ._hysteresis.base import AbstractHysteresis as AbstractHysteresis
+from ._hysteresis.base import (
+    AbstractHysteresis as AbstractHysteresis,
+    AbstractHysteresisCell as AbstractHysteresisCell,
+)
 from ._hysteresis.bouc_wen import BoucWen as BoucWen
 from ._hysteresis.initialise import (
     pi_cold_start as pi_cold_start,

@@ -19,7 +19,7 @@ V = 60 * np.sin(2 * np.pi * 2 * T) * np.exp(-0.6 * T) + 10 * np.sin(2 * np.pi * 
 # ---------------------------------------------------------------------------------------------- a user's own kind
 
 
-class WeightedPlay(pj.AbstractHysteresis):
+class WeightedPlay(pj.AbstractHysteresisCell):
     """y = w P_r[v]: one play operator with a weight (a user's own block class, written without the registry)."""
 
     weight: jax.Array
@@ -32,6 +32,9 @@ class WeightedPlay(pj.AbstractHysteresis):
     def step(self, state, v):
         p = jnp.clip(state, v - self.threshold, v + self.threshold)
         return p, self.weight * p
+
+    def check(self):
+        return self
 
 
 class WeightedPlayKind(fitting.BlockKind):

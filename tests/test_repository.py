@@ -103,3 +103,43 @@ def test_layers_import_only_what_the_layout_allows():
     # the check sees real edges (a resolver that saw none would pass vacuously)
     assert "piezojax._creep.lags.lag_columns" in _imports(ROOT / "fitting" / "_staged.py")
     assert "piezojax._linear.base" in _imports(ROOT / "piezojax" / "_creep" / "linear.py")
+
+
+def test_no_concrete_method_is_overridden():
+    """equinox's abstract/final pattern: a method is abstract or final, never a concrete default overridden below."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import equinox as eqx
+
+    import fitting
+    import piezojax
+
+    ours = ("piezojax", "fitting")
+    classes = set()
+    for package in (piezojax, fitting):
+        for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+            module = importlib.import_module(info.name)
+            for _, cls in inspect.getmembers(module, inspect.isclass):
+                if issubclass(cls, eqx.Module) and cls.__module__.split(".")[0] in ours:
+                    classes.add(cls)
+    problems = []
+    for cls in sorted(classes, key=lambda c: f"{c.__module__}.{c.__qualname__}"):
+        for name, value in vars(cls).items():
+            if name.startswith("__") and name != "__call__":
+                continue
+            if not (inspect.isfunction(value) or isinstance(value, property)):
+                continue
+            if getattr(value, "__isabstractmethod__", False):
+                continue
+            for base in cls.__mro__[1:]:
+                if base.__module__.split(".")[0] not in ours or name not in vars(base):
+                    continue
+                if not getattr(vars(base)[name], "__isabstractmethod__", False):
+                    problems.append(f"{cls.__module__}.{cls.__qualname__}.{name} overrides {base.__qualname__}.{name}")
+                break
+    assert not problems, "\n".join(problems)
+    # the check saw the library's classes (one that found none would pass vacuously)
+    assert len(classes) > 30, f"only {len(classes)} Module classes found"
+    assert piezojax.PrandtlIshlinskii in classes and piezojax.AbstractHysteresis in classes

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, as_parameter_array, check_finite, check_positive, check_signal, check_step
+from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 
 
@@ -83,8 +84,9 @@ def interval_current(q: Array, dt: Array) -> Array:
 class AbstractCircuit(eqx.Module):
     r"""A self-sensing circuit: a forward model from the drive voltage (and mechanical inputs) to the recorded output.
 
-    Concrete circuits define `__call__(v_in, dt, ...) -> v_out` (the recorded output voltage) and `charge(...)` or
-    the intermediate physical quantity their paper uses. Every parameter is an array leaf, so `jax.jacfwd` of the
+    Concrete circuits define `__call__(v_in, dt, load=None) -> v_out` (the recorded output voltage, with the
+    mechanical input `load` as third argument where the circuit has one) and `charge(...)` or the intermediate
+    physical quantity their paper uses. Every parameter is an array leaf, so `jax.jacfwd` of the
     output with respect to the whole module gives the sensitivities a fitter needs. `check()` attaches the
     data-dependent parameter checks (`eqx.error_if`).
 
@@ -96,12 +98,19 @@ class AbstractCircuit(eqx.Module):
     or non-finite signals the same way and runs `check()`.
     """
 
+    @abc.abstractmethod
     def check(self) -> "AbstractCircuit":
         """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
-        `eqx.error_if` if traced). Default: none."""
-        return self
+        `eqx.error_if` if traced)."""
 
     @abc.abstractmethod
-    def __call__(self, v_in: ArrayLike, dt: ArrayLike, *args, **kwargs) -> Array:
-        """The recorded output voltage for the drive `v_in` sampled with step `dt`."""
+    def __call__(self, v_in: SignalLike, dt: ArrayLike, load: SignalLike | None = None, /) -> Signal:
+        """The recorded output voltage for the drive `v_in` sampled with step `dt`, shape `(time,)`.
+
+        `load` (third, positional) is the circuit's mechanical input signal, on the drive's time grid: the
+        external force `f_ext` of `ChargeIntegratorCircuit`, the stack displacement `x_a` of `SmartStackCircuit`
+        (each circuit names it after that quantity, and it may be passed by that keyword). `None` (default): the
+        circuit's own default (no force; the displacement from the circuit's `actuator`). A circuit without a
+        mechanical input (`TransimpedanceCircuit`) raises a `PiezojaxValueError` naming `load` if one is given.
+        """
 

@@ -111,7 +111,8 @@ class ChargeIntegratorCircuit(AbstractCircuit):
 
         - `v_in`: drive voltage samples, shape `(time,)`.
         - `dt`: sample step [s].
-        - `f_ext`: external force on the tip, same length as `v_in`, or `None` (free actuator).
+        - `f_ext`: external force on the tip, same length as `v_in`, or `None` (free actuator): the circuit's
+          `load` (`AbstractCircuit.__call__`).
 
         **Returns:** $V_{out}$, shape `(time,)`.
         """

@@ -129,7 +129,8 @@ class SmartStackCircuit(AbstractCircuit):
 
         - `v_a`: actuator drive [V], shape `(time,)`.
         - `dt`: sample step [s].
-        - `x_a`: stack displacement [m] (same length), or `None` to compute it with `actuator`.
+        - `x_a`: stack displacement [m] (same length), or `None` to compute it with `actuator`: the circuit's
+          `load` (`AbstractCircuit.__call__`).
 
         **Returns:** $V_s$, shape `(time,)`.
         """

@@ -3,6 +3,7 @@
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import PiezojaxValueError
 from .._custom_types import Signal, SignalLike
 from .base import (
     AbstractCircuit,
@@ -93,8 +94,14 @@ class TransimpedanceCircuit(AbstractCircuit):
         m, dt, s = prepare(self, dt, v_in=v_in)
         return interval_current(m._charge(s["v_in"], dt), dt)
 
-    def __call__(self, v_in: SignalLike, dt: ArrayLike) -> Signal:
-        r"""The amplifier output $V_{out} = -R_f (I_{pzt} + I_{bias})$ [V] for the drive `v_in` [V], step `dt` [s]."""
+    def __call__(self, v_in: SignalLike, dt: ArrayLike, load: SignalLike | None = None) -> Signal:
+        r"""The amplifier output $V_{out} = -R_f (I_{pzt} + I_{bias})$ [V] for the drive `v_in` [V], step `dt` [s].
+
+        The output depends on the drive only: a `load` signal raises a `PiezojaxValueError`."""
+        if load is not None:
+            raise PiezojaxValueError(
+                "`load`: TransimpedanceCircuit has no mechanical input (its output depends on the drive only)"
+            )
         m, dt, s = prepare(self, dt, v_in=v_in)
         current = interval_current(m._charge(s["v_in"], dt), dt)
         return -m.feedback_resistance * (current + m.bias_current)

@@ -3,7 +3,6 @@
 import abc
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, check_scalar, check_signal, check_step
@@ -41,19 +40,19 @@ class AbstractCreep(eqx.Module):
     def instantaneous_gain(self) -> Array:
         """$h(0^+)$: the part of the response that follows the input without delay."""
 
+    @abc.abstractmethod
     def settled_gain(self) -> Array:
         r"""$h(\infty)$: the output per unit of an input held until the creep has settled (the static gain).
 
-        Default: `step_response(inf)`. The logarithmic law never settles and overrides this (see its docstring)."""
-        return self.step_response(jnp.asarray(jnp.inf, self._dtype()))
+        The logarithmic law never settles: its value is a convention (see `LogarithmicCreep.settled_gain`)."""
 
     def _dtype(self):
         return module_float_dtype(self)
 
+    @abc.abstractmethod
     def check(self) -> "AbstractCreep":
         """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
-        `eqx.error_if` if traced), run by `simulate` outside the scan. Default: none."""
-        return self
+        `eqx.error_if` if traced), run by `simulate` outside the scan; a block without value checks returns `self`."""
 
     def simulate(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh", u0: ArrayLike | None = None) -> Signal:
         """Response to the sampled input `u` (step `dt`), from rest or settled at the input `u0`.

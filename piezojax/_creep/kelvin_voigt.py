@@ -82,6 +82,10 @@ class KelvinVoigtCreep(AbstractCreep):
     def instantaneous_gain(self) -> Array:
         return self._c0(self.stiffnesses.dtype)
 
+    def settled_gain(self) -> Array:
+        r"""$h(\infty) = 1/k_0 + \sum_i 1/k_i$ (`step_response(inf)`)."""
+        return self.step_response(jnp.asarray(jnp.inf, self._dtype()))
+
     def _simulate(self, u: Array, dt: Array, hold: str) -> Array:
         # The one first-order lag of the library (`lags.lag_sum`): elementwise scan body, hand-derived forward
         # sensitivities (under `jax.jacfwd` the parameter directions are one matrix product).

@@ -56,6 +56,10 @@ class LinearCreep(AbstractCreep):
         """
         return cls(StableTransferFunction.from_tf(num, den, dc_normalised=dc_normalised))
 
+    def check(self) -> "LinearCreep":
+        """`self`: the system checks its coefficients whenever it builds its realisation (`state_space()`)."""
+        return self
+
     def settled_gain(self) -> Array:
         """$F_C(0)$, the static gain of the transfer function."""
         return self.system.dc_gain()

@@ -19,7 +19,9 @@ class AbstractHysteresis(eqx.Module):
     A concrete operator defines `init()` (the relaxed / demagnetised state, input at 0) and
     `step(state, v) -> (state, y)`, which advances the operator from the previous input sample (kept in the state)
     to `v` along the straight line between them. Because the path between samples is a straight line, the exact
-    operators are rate-independent: inserting samples on that line changes nothing at the original samples.
+    operators are rate-independent: inserting samples on that line changes nothing at the original samples. It also
+    defines `check()`, `_run` (the loop over a signal; `scan_cell` for the plain scan of `step`) and `inverse`
+    (`root_finding_inverse` unless it has an analytic one).
 
     `smoothing` (0 = exact) selects a smooth relaxation that keeps this property; see each operator. Declare it as a
     setting, `smoothing: Array = pj.setting()`, so that a calibration does not fit it by default.
@@ -44,10 +46,10 @@ class AbstractHysteresis(eqx.Module):
     def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
         """Advance from the state's previous input to the input sample `v`; return `(state, y)`."""
 
+    @abc.abstractmethod
     def check(self) -> "AbstractHysteresis":
         """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
-        `eqx.error_if` if traced). Default: none."""
-        return self
+        `eqx.error_if` if traced); an operator without value checks returns `self`."""
 
     def scan(self, signal: SignalLike, state: PyTree[Array] | None = None) -> tuple[PyTree[Array], Signal]:
         """Run the operator over `signal` from `state` (default `init()`); return `(final_state, output)`.
@@ -73,40 +75,74 @@ class AbstractHysteresis(eqx.Module):
             state = jtu.tree_map(lambda s: jnp.asarray(s, dtype), state)
         return op, signal, state
 
+    @abc.abstractmethod
     def _run(self, state: PyTree[Array], signal: Signal) -> tuple[PyTree[Array], Signal]:
-        """Scan the cell over a prepared signal. Operators override this to pick a faster loop outside the scan."""
-        # A plain closure, not the bound method: jax hashes the scan body, and a bound method of a Module hashes
-        # its (unhashable) array fields.
-        return jax.lax.scan(lambda carry, v: self.step(carry, v), state, signal, unroll=self._unroll())
+        """Scan the cell over a prepared signal (checked, cast, from `state`); return `(final_state, output)`.
+
+        Operators without a faster loop return `scan_cell(self, state, signal)`, the plain `jax.lax.scan` of `step`;
+        others choose a faster loop outside the scan or carry hand-derived derivatives."""
 
     def __call__(self, signal: SignalLike, state: PyTree[Array] | None = None) -> Signal:
         """Apply the operator to a 1-D `signal` (see `scan`) and return the output signal."""
         return self.scan(signal, state)[1]
 
+    @abc.abstractmethod
     def inverse(
         self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
     ) -> "AbstractHysteresis":
         r"""The inverse operator $\mathcal{H}^{-1}$, for feedforward compensation: `self(inverse(y)) == y`.
 
-        Default: per-sample root finding on the admissible input range (`HysteresisInverse`, whose docstring gives
-        the conditions, the accuracy and the derivatives). Operators with an analytic inverse override this
-        (`PrandtlIshlinskii.inverse()` without bounds).
+        Most operators return `root_finding_inverse(self, lower, upper, max_iterations)`: per-sample root finding on
+        the admissible input range (`HysteresisInverse`, whose docstring gives the conditions, the accuracy and the
+        derivatives). Operators with an analytic inverse return it instead (`PrandtlIshlinskii.inverse()` without
+        bounds).
 
         **Arguments:**
 
         - `lower`, `upper`: the admissible input range (finite, `lower < upper`); outputs out of reach saturate at
-          these inputs. Needed here (`PiezojaxValueError` naming them if missing).
+          these inputs. Needed by the root-finding inverse (`PiezojaxValueError` naming them if missing).
         - `max_iterations`: root-finding iterations per sample at most.
 
         **Returns:** an `AbstractHysteresis` mapping the desired output to the input.
         """
-        from .inverse import HysteresisInverse
-
-        return HysteresisInverse(self, lower, upper, max_iterations)
 
     def _unroll(self) -> int:
         # Measured on XLA:CPU (jax 0.10.2): unroll=1 is fastest for these small cells (unrolling slows them).
         return 1
+
+
+def scan_cell(op: AbstractHysteresis, state: PyTree[Array], signal: Signal) -> tuple[PyTree[Array], Signal]:
+    """The plain `_run`: `jax.lax.scan` of `op.step` over a prepared signal, from `state`."""
+    # A plain closure, not the bound method: jax hashes the scan body, and a bound method of a Module hashes
+    # its (unhashable) array fields.
+    return jax.lax.scan(lambda carry, v: op.step(carry, v), state, signal, unroll=op._unroll())
+
+
+def root_finding_inverse(
+    op: AbstractHysteresis, lower: ScalarLike | None, upper: ScalarLike | None, max_iterations: int
+) -> AbstractHysteresis:
+    """The inverse of `op` by per-sample root finding on `[lower, upper]` (`HysteresisInverse`; see
+    `AbstractHysteresis.inverse`)."""
+    from .inverse import HysteresisInverse
+
+    return HysteresisInverse(op, lower, upper, max_iterations)
+
+
+class AbstractHysteresisCell(AbstractHysteresis):
+    """An operator run by the plain scan of its cell and inverted by root finding: the simplest way to write one.
+
+    Define `init()`, `step(state, v)` and `check()` (return `self` if there is nothing to check); `_run` is
+    `scan_cell` and `inverse` is `root_finding_inverse` (both final here). `Preisach` and `HysteresisInverse` are
+    written this way.
+    """
+
+    def _run(self, state: PyTree[Array], signal: Signal) -> tuple[PyTree[Array], Signal]:
+        return scan_cell(self, state, signal)
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)
 
 
 class AbstractOutputMap(AbstractHysteresis):
@@ -114,7 +150,8 @@ class AbstractOutputMap(AbstractHysteresis):
 
     The state, the smoothing and the loop are the wrapped operator's: `init`, `step` and `_run` are its own with
     `shape` applied to the output, so an initial state, a prehistory or the operator's fast loop and derivatives
-    work as for the operator alone. Concrete wrappers define `shape` (and `check`).
+    work as for the operator alone, and `inverse` is the root-finding inverse of the whole map. Concrete wrappers
+    define `shape` and `check`.
     """
 
     hysteresis: eqx.AbstractVar[AbstractHysteresis]
@@ -138,3 +175,9 @@ class AbstractOutputMap(AbstractHysteresis):
     def _run(self, state, signal):
         state, h = self.hysteresis._run(state, signal)
         return state, self.shape(h)
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        """The root-finding inverse of the whole map (`root_finding_inverse`)."""
+        return root_finding_inverse(self, lower, upper, max_iterations)

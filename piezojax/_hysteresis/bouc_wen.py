@@ -11,7 +11,7 @@ from .._checks import PiezojaxValueError, check_scalar, check_value, concrete_or
 from .._custom_types import ScalarLike, Signal
 from .._dtypes import param_dtype
 from .._parametrisation import setting
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, root_finding_inverse
 
 _OUTPUTS = ("dv-z", "dv+z", "z")
 _METHODS = ("closed_form", "rk4")
@@ -352,3 +352,8 @@ class BoucWen(AbstractHysteresis):
         fine = jnp.concatenate([inner, signal[:, None]], axis=1).reshape(-1)
         final, y = jax.lax.scan(lambda c, v: self._step(c, v, 1), state, fine, unroll=self._unroll())
         return final, y[m - 1 :: m]
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)

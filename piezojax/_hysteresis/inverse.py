@@ -9,14 +9,14 @@ from jaxtyping import Array, PyTree
 from .._checks import PiezojaxValueError, check_scalar, check_value
 from .._custom_types import ScalarLike
 from .._dtypes import param_dtype
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, AbstractHysteresisCell
 
 
 def _stop_gradient(tree: PyTree) -> PyTree:
     return jtu.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, tree)
 
 
-class HysteresisInverse(AbstractHysteresis):
+class HysteresisInverse(AbstractHysteresisCell):
     r"""The inverse $v = \mathcal{H}^{-1}[y]$ of a hysteresis operator, by root finding at every sample.
 
     At sample $k$ the forward operator is in the state $s_{k-1}$ (from the inputs found so far), and its output for

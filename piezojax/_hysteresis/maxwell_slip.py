@@ -8,7 +8,7 @@ from .._checks import PiezojaxValueError, check_positive, check_scalar, check_ve
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, root_finding_inverse
 from .play import check_smoothing, error_if_bad_smoothing, run_exact_or_smooth, stop_update
 from .prandtl_ishlinskii import PrandtlIshlinskii
 
@@ -137,3 +137,8 @@ class MaxwellSlip(AbstractHysteresis):
         x_prev, z = state
         z = stop_update(z, x - x_prev, self.thresholds, self.smoothing, exact)
         return (x, z), jnp.dot(self.stiffness, z)
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)

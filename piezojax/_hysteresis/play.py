@@ -32,7 +32,7 @@ from .._custom_types import ScalarLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
 from .._scans import affine_scan, clamp_scan
-from .base import AbstractHysteresis, AbstractOutputMap
+from .base import AbstractHysteresis, AbstractOutputMap, root_finding_inverse
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Pure step functions (also used by other operators, e.g. the smooth Preisach form).
@@ -455,12 +455,17 @@ def error_if_bad_smoothing(smoothing: Array) -> Array:
 
 
 class _AbstractStopCell(AbstractHysteresis):
-    """Shared cell of the play and stop operators: state `(previous input, stop values z)`, one update law."""
+    """Shared cell of the play and stop operators: state `(previous input, stop values z)`, one update law.
+
+    Final helpers for the concrete cells: `_stop_check` (the checks of `thresholds` and `smoothing`) and `_stop_run`
+    (the loop of `stop_scan`), which `PlayOperator` and `StopOperator` use as their `check` and `_run`.
+    """
 
     thresholds: eqx.AbstractVar[Float[Array, "*n"]]
     smoothing: eqx.AbstractVar[Float[Array, ""]]
 
-    def check(self):
+    def _stop_check(self):
+        """`check()` of the thresholds (>= 0) and the smoothing."""
         return eqx.tree_at(
             lambda m: (m.thresholds, m.smoothing),
             self,
@@ -475,7 +480,8 @@ class _AbstractStopCell(AbstractHysteresis):
     def step(self, state, v):
         return self._step(state, v, None)
 
-    def _run(self, state, signal):
+    def _stop_run(self, state, signal):
+        """`_run` by `stop_scan`, then the output of every sample."""
         # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`); `stop_scan` carries the
         # hand-derived forward sensitivities (fast `jax.jacfwd`).
         v0, z0 = state
@@ -531,6 +537,17 @@ class PlayOperator(_AbstractStopCell):
     def _output(self, v, z):
         return v - z
 
+    def check(self) -> "PlayOperator":
+        return self._stop_check()
+
+    def _run(self, state, signal):
+        return self._stop_run(state, signal)
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)
+
 
 class StopOperator(_AbstractStopCell):
     r"""The stop (elastic–perfectly-plastic) operator $S_r = I - P_r$, for one threshold or a vector of thresholds.
@@ -564,6 +581,17 @@ class StopOperator(_AbstractStopCell):
 
     def _output(self, v, z):
         return z
+
+    def check(self) -> "StopOperator":
+        return self._stop_check()
+
+    def _run(self, state, signal):
+        return self._stop_run(state, signal)
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)
 
 
 def exact_cell(op: AbstractHysteresis):

@@ -19,7 +19,7 @@ from .._config import use_parallel_scan
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, root_finding_inverse
 from .play import (
     _AbstractStopCell,
     _tangent_or_none,
@@ -218,7 +218,7 @@ class PrandtlIshlinskii(_AbstractStopCell):
     ) -> "AbstractHysteresis":
         r"""The analytic inverse operator, itself a Prandtl–Ishlinskii operator (Krasnosel'skii–Pokrovskii, Kuhnen).
 
-        With an input range (`lower`, `upper`), the bounded root-finding inverse of `AbstractHysteresis.inverse`
+        With an input range (`lower`, `upper`), the bounded root-finding inverse (`root_finding_inverse`)
         instead (outputs out of reach saturate at the bounds; any smoothing); without, the analytic one below.
 
         With $w_0$ the weight of a play at $r_0 = 0$ and slopes $a_j = w_0 + \sum_{i \leq j} w_i$ of the loading curve,
@@ -239,7 +239,7 @@ class PrandtlIshlinskii(_AbstractStopCell):
         ```
         """
         if lower is not None or upper is not None:
-            return super().inverse(lower, upper, max_iterations=max_iterations)
+            return root_finding_inverse(self, lower, upper, max_iterations)
         w0, w, r, s = self.w0, self.weights, self.thresholds, self.smoothing
         slopes = w0 + jnp.cumsum(w)  # a_1 .. a_n
         slopes_prev = jnp.concatenate([w0[None], slopes[:-1]])  # a_0 .. a_{n-1}

@@ -18,7 +18,7 @@ from .._checks import (
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
-from .base import AbstractHysteresis
+from .base import AbstractHysteresis, AbstractHysteresisCell, root_finding_inverse
 from .play import (
     _AbstractStopCell,
     check_smoothing,
@@ -37,7 +37,7 @@ def _ordered(p: tuple[Array, Array]) -> Array:
     return jnp.all(alpha >= beta)
 
 
-class Preisach(AbstractHysteresis):
+class Preisach(AbstractHysteresisCell):
     r"""The classical Preisach operator, a weighted sum of relays $R_{\alpha_i,\beta_i}$ with
     $\alpha_i \ge \beta_i$.
 
@@ -363,3 +363,8 @@ class GaussianPreisach(_AbstractStopCell):
 
         final, y = scan_exact_or_smooth(exact_flag(self.smoothing), self.smoothing, run)
         return final, y.reshape(-1)[:t]
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)

@@ -28,9 +28,9 @@ class AbstractLinearSystem(eqx.Module):
 
     $\dot x = A x + B u$, $\quad y = C x + D u$, $\quad G(s) = C (sI - A)^{-1} B + D$.
 
-    A concrete system defines `state_space()`, its continuous-time realisation. Everything else is shared:
-    exact discretisation (`discretise`), simulation of a sampled input by `lax.scan` (`simulate`, `scan`),
-    `dc_gain()`, `frequency_response(w)` and `order`.
+    A concrete system defines `state_space()`, its continuous-time realisation, and `order`, its number of states.
+    Everything else is shared: exact discretisation (`discretise`), simulation of a sampled input by `lax.scan`
+    (`simulate`, `scan`), `dc_gain()` and `frequency_response(w)`.
 
     Sampled inputs are held between samples by `hold="zoh"` (constant, as a DAC does) or `"foh"` (linear,
     as `scipy.signal.lsim` does by default). The discretisation is exact for that input (matrix exponential).
@@ -46,9 +46,9 @@ class AbstractLinearSystem(eqx.Module):
         """The continuous-time realisation `(A (n, n), B (n,), C (n,), D ())`."""
 
     @property
+    @abc.abstractmethod
     def order(self) -> int:
-        """The number of states n (static)."""
-        return jax.eval_shape(lambda m: m.state_space()[0], self).shape[0]
+        """The number of states n (static): the size of `state_space()`'s `A`."""
 
     def dc_gain(self) -> Float[Array, ""]:
         r"""The static gain $G(0) = D - C A^{-1} B$ (infinite or NaN if the system has a pole at 0)."""

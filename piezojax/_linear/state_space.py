@@ -33,5 +33,9 @@ class StateSpace(AbstractLinearSystem):
     def __init__(self, A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike = 0.0):
         self.A, self.B, self.C, self.D = check_realisation(A, B, C, D)
 
+    @property
+    def order(self) -> int:
+        return self.A.shape[0]
+
     def state_space(self):
         return self.A, self.B, self.C, self.D

@@ -65,6 +65,10 @@ class TransferFunction(AbstractLinearSystem):
     def __init__(self, num: ArrayLike, den: ArrayLike):
         self.num, self.den = normalise_tf(num, den)
 
+    @property
+    def order(self) -> int:
+        return self.den.shape[0] - 1
+
     def state_space(self):
         # coefficients replaced after __init__ (`eqx.tree_at`) are checked here, one check for both
         num, den = check_value(

@@ -34,10 +34,10 @@ class AbstractObserver(eqx.Module):
 
     estimates: eqx.AbstractClassVar[tuple[str, ...]]
 
+    @abc.abstractmethod
     def check(self) -> "AbstractObserver":
         """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
-        `eqx.error_if` if traced). Default: none."""
-        return self
+        `eqx.error_if` if traced)."""
 
     @abc.abstractmethod
     def __call__(self, v_in: ArrayLike, v_out: ArrayLike, dt: ArrayLike) -> Estimate:
