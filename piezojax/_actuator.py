@@ -196,6 +196,10 @@ class Actuator(eqx.Module):
         - `hold`: how the creep and dynamics see their sampled inputs between samples, `"zoh"` or `"foh"`.
 
         **Returns:** an `ActuatorOutput` with `displacement`, `charge`, `current`, each of shape `(time,)`.
+
+        An exact play/stop-cell hysteresis whose `smoothing` is a concrete 0 (or none), a finite-state creep (or
+        none) and the dynamics run in one loop on the CPU (ZOH), with the derivatives of the block-by-block pass;
+        everything else block by block (see the comment above `_blocks` in this module).
         """
         m, v, dt = self._prepare(v_in, dt, hold)
         initial = m._initial(v.dtype)
@@ -320,14 +324,17 @@ def _outputs(m: Actuator, v: Array, dt: Array, initial, delta: Array) -> Actuato
 
 def _one_loop(m: Actuator, v: Array, hold: str) -> bool:
     """Whether `simulate` runs the one-loop pass: zero-order hold, sequential loops (see `pj.set_parallel_scans`: by
-    default on the CPU, and for records shorter than `PARALLEL_MIN_LENGTH` on an accelerator), a play/stop-cell hysteresis (or none) that is not concretely smooth, and a creep with
-    a finite state (or none)."""
+    default on the CPU, and for records shorter than `PARALLEL_MIN_LENGTH` on an accelerator), a play/stop-cell
+    hysteresis whose `smoothing` is a concrete 0 (or none), and a creep with a finite state (or none).
+
+    A traced `smoothing` (a fit's parameters, `eqx.filter_jit` over the model) keeps the block-by-block pass: choosing
+    between the two passes at run time would compile both (measured on `experiments.bench_calibration`'s fit: 1.8 s
+    more compilation, no faster steps, since a fit's time goes to linearisations, which run the blocks anyway)."""
     if hold != "zoh" or use_parallel_scan(v.shape[0]):
         return False
-    if m.hysteresis is not None and (
-        exact_cell(m.hysteresis) is None or exact_flag(m.hysteresis.smoothing) is False
-    ):
-        return False
+    if m.hysteresis is not None:
+        if exact_cell(m.hysteresis) is None or exact_flag(m.hysteresis.smoothing) is not True:
+            return False
     return m.creep is None or isinstance(m.creep, ZOH_CELL_TYPES)
 
 
@@ -349,15 +356,9 @@ def _one_loop_or_blocks(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOu
         m, v, dt, initial, _ = eqx.combine(dynamic, static)
         return _blocks(m, v, dt, "zoh", initial)
 
-    def one_loop(dynamic):
-        return _one_loop_pass(*eqx.combine(dynamic, static))
-
     @jax.custom_jvp
     def outputs(dynamic):
-        if m.hysteresis is not None and exact_flag(m.hysteresis.smoothing) is None:
-            smoothing = eqx.combine(dynamic, static)[0].hysteresis.smoothing
-            return jax.lax.cond(smoothing == 0, one_loop, blocks, dynamic)
-        return one_loop(dynamic)
+        return _one_loop_pass(*eqx.combine(dynamic, static))
 
     def rule(primals, tangents):
         # Only the leaves with a tangent are differentiated: the others (the signal, dt, fixed parameters) stay

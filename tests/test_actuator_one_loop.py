@@ -96,8 +96,12 @@ def test_which_chains_take_the_one_loop_pass():
 
 def test_derivatives_are_the_blocks():
     act = CONFIGS["series scaled PI, lag creep, settled prehistory"]
-    params, static = eqx.partition(act, eqx.is_inexact_array)
+    # every parameter traced but the smoothing, held at a concrete 0 (a traced one runs block by block)
+    spec = jax.tree_util.tree_map(eqx.is_inexact_array, act)
+    spec = eqx.tree_at(lambda a: a.hysteresis.hysteresis.smoothing, spec, False)
+    params, static = eqx.partition(act, spec)
     flat, unravel = jax.flatten_util.ravel_pytree(params)
+    assert takes_one_loop(eqx.combine(params, static))
 
     def outputs(simulate):
         def f(p):
@@ -127,13 +131,22 @@ def test_derivatives_are_the_blocks():
     np.testing.assert_allclose(dv, dv_ref, rtol=1e-12, atol=1e-12 * np.abs(dv_ref).max())
 
 
-def test_traced_smoothing_and_vmap():
+def test_traced_smoothing_runs_block_by_block_and_vmap():
     act = CONFIGS["parallel PI, Kelvin-Voigt, 4th order"]
-    run = jax.jit(lambda s, v: eqx.tree_at(lambda a: a.hysteresis.smoothing, act, s).simulate(v, DT))
-    # smoothing traced: exact -> the one-loop pass, smooth -> the blocks (chosen by `lax.cond`)
+    passes = []
+
+    def simulate(s, v):
+        a = eqx.tree_at(lambda a: a.hysteresis.smoothing, act, s)
+        passes.append(takes_one_loop(a, v))
+        return a.simulate(v, DT)
+
+    # a traced smoothing (as in a fit) keeps the block-by-block pass: one pass compiled, not both
+    run = jax.jit(simulate)
     assert_outputs_close(run(jnp.asarray(0.0), jnp.asarray(V)), blocks(act, V), 1e-13)
     smooth = eqx.tree_at(lambda a: a.hysteresis.smoothing, act, jnp.asarray(0.2))
     assert_outputs_close(run(jnp.asarray(0.2), jnp.asarray(V)), blocks(smooth, V), 1e-13)
+    assert passes == [False]
+    # a batch of records through the one-loop pass
     batch = jnp.stack([jnp.asarray(V), -0.5 * jnp.asarray(V), jnp.zeros(N)])
     out = jax.jit(jax.vmap(lambda v: act.simulate(v, DT)))(batch)
     for i in range(3):
