@@ -1,6 +1,7 @@
 r"""Benchmark: the joint calibration of an actuator model with `fitting.fit` against scipy + numba.
 
-Run: `python -m experiments.bench_calibration [--quick] [--method M] [--bounds-variant] [--max-steps N] [--progress]`
+Run: `python -m experiments.bench_calibration [--quick] [--method M] [--bounds-variant] [--max-steps N] [--progress]
+[--warm-cache]`
 
 The model is `pj.Actuator(PrandtlIshlinskii(15 plays), KelvinVoigtCreep(2 lags, k0=None),
 StableTransferFunction(1, omega, zeta))` (parallel structure): the displacement is
@@ -39,6 +40,10 @@ Fits, all on the same data, the same residuals $r = w_c(\hat\delta - \delta)$ wi
 3. optional (`--bounds-variant`), scipy "bounds", what a user writes without reparametrisation: physical parameters
    divided by their start values ($x_0 = 1$, so the default finite-difference step suits every parameter), bounds
    $x \ge 0$ (1e-6 for the creep, $\omega$, $\zeta$ and $w_0$), thresholds unordered, `x_scale="jac"`.
+
+`--warm-cache` also times the whole engine fit, compilation included, in two fresh processes that share a new
+persistent compilation cache (`pj.enable_compilation_cache`): the first fills it, the second loads the compiled
+programs from it, as a second `piezojax fit` of records of the same layout does.
 
 Before fitting, the numba simulation is checked against `pj.Actuator.simulate` (max |difference| / range) and the
 engine's Jacobian against central finite differences of its residuals. Printed: wall and CPU (process) time,
@@ -452,8 +457,9 @@ def run(
 
     # --- (2) scipy, same parametrisation ---------------------------------------------------------------------------
     if not run_scipy:
-        print(f"  engine ({method}, {linear_solver}): compiled {results['jax_warm_wall_s']:.2f} s wall, "
-              f"{results['jax_warm_cpu_s']:.2f} s CPU, cost {fr.cost:.6e}, {fr.steps} steps, {fr.code}; "
+        compiled = (f"compiled {results['jax_warm_wall_s']:.2f} s wall, {results['jax_warm_cpu_s']:.2f} s CPU, "
+                    if warm_run else "")
+        print(f"  engine ({method}, {linear_solver}): {compiled}cost {fr.cost:.6e}, {fr.steps} steps, {fr.code}; "
               f"incl. compile {results['jax_cold_wall_s']:.2f} s wall, {results['jax_cold_cpu_s']:.2f} s CPU")
         return results
     nb.calls = 0
@@ -574,15 +580,55 @@ def main(argv=None) -> dict:
     parser.add_argument("--no-scipy", action="store_true", help="run only the engine")
     parser.add_argument("--method", choices=("trust_region", "levenberg_marquardt"), default="trust_region",
                         help="the engine's `fitting.solve(method=...)` (default trust_region: scipy's algorithm)")
+    parser.add_argument("--warm-cache", action="store_true",
+                        help="also time the whole engine fit (compilation included) in two fresh processes sharing a "
+                             "new persistent compilation cache: the first fills it, the second loads from it")
+    parser.add_argument("--cache-dir", default=None, help=argparse.SUPPRESS)  # the child processes of --warm-cache
     args = parser.parse_args(argv)
     import piezojax as pj
 
     pj.enable_fast_cpu_scans()
+    if args.cache_dir is not None:
+        pj.enable_compilation_cache(args.cache_dir)
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    return run(quick=args.quick, bounds_variant=args.bounds_variant, max_steps=args.max_steps, progress=args.progress,
-               linear_solver=args.linear_solver, run_scipy=not args.no_scipy, method=args.method)
+    if args.cache_dir is not None:  # a child: one cold engine fit, its numbers as JSON on the last line
+        import json
+
+        out = run(quick=args.quick, max_steps=args.max_steps, warm_run=False, run_scipy=False, method=args.method,
+                  linear_solver=args.linear_solver)
+        print(json.dumps({k: out[k] for k in ("jax_cold_wall_s", "jax_cost")}))
+        return out
+    results = run(quick=args.quick, bounds_variant=args.bounds_variant, max_steps=args.max_steps,
+                  progress=args.progress, linear_solver=args.linear_solver, run_scipy=not args.no_scipy,
+                  method=args.method)
+    if args.warm_cache:
+        results.update(_warm_cache_runs(args, results.get("scipy_u_wall_s")))
+    return results
+
+
+def _warm_cache_runs(args, scipy_wall: float | None) -> dict:
+    """The engine fit, compilation included, in two fresh processes with a new shared compilation cache."""
+    import json
+    import subprocess
+    import tempfile
+
+    walls = []
+    with tempfile.TemporaryDirectory() as cache:
+        cmd = [sys.executable, "-m", "experiments.bench_calibration", "--cache-dir", cache, "--method", args.method,
+               "--linear-solver", args.linear_solver]
+        cmd += ["--quick"] if args.quick else []
+        cmd += ["--max-steps", str(args.max_steps)] if args.max_steps is not None else []
+        for _ in range(2):
+            done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            walls.append(json.loads(done.stdout.strip().splitlines()[-1])["jax_cold_wall_s"])
+    print(f"\n  fresh process, whole engine fit incl. compile: empty cache {walls[0]:.2f} s, "
+          f"warm cache {walls[1]:.2f} s")
+    if scipy_wall is not None:
+        print(f"  speed-up vs scipy (same u), fresh process: empty cache {scipy_wall / walls[0]:.2f}x, "
+              f"warm cache {scipy_wall / walls[1]:.2f}x")
+    return {"jax_fresh_empty_cache_wall_s": walls[0], "jax_fresh_warm_cache_wall_s": walls[1]}
 
 
 if __name__ == "__main__":
