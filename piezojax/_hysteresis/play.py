@@ -455,22 +455,11 @@ def error_if_bad_smoothing(smoothing: Array) -> Array:
 
 
 class _AbstractStopCell(AbstractHysteresis):
-    """Shared cell of the play and stop operators: state `(previous input, stop values z)`, one update law.
-
-    Final helpers for the concrete cells: `_stop_check` (the checks of `thresholds` and `smoothing`) and `_stop_run`
-    (the loop of `stop_scan`), which `PlayOperator` and `StopOperator` use as their `check` and `_run`.
-    """
+    """Shared cell of the stop-value operators (play, stop, PI, Gaussian Preisach): state `(previous input, stop
+    values z)`, one update law."""
 
     thresholds: eqx.AbstractVar[Float[Array, "*n"]]
     smoothing: eqx.AbstractVar[Float[Array, ""]]
-
-    def _stop_check(self):
-        """`check()` of the thresholds (>= 0) and the smoothing."""
-        return eqx.tree_at(
-            lambda m: (m.thresholds, m.smoothing),
-            self,
-            (check_positive(self.thresholds, "thresholds", allow_zero=True), error_if_bad_smoothing(self.smoothing)),
-        )
 
     def init(self) -> tuple[Array, Array]:
         """Demagnetised state `(previous input, stop values) = (0, 0)`."""
@@ -479,14 +468,6 @@ class _AbstractStopCell(AbstractHysteresis):
 
     def step(self, state, v):
         return self._step(state, v, None)
-
-    def _stop_run(self, state, signal):
-        """`_run` by `stop_scan`, then the output of every sample."""
-        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`); `stop_scan` carries the
-        # hand-derived forward sensitivities (fast `jax.jacfwd`).
-        v0, z0 = state
-        z = stop_scan(exact_flag(self.smoothing), self.thresholds, self.smoothing, v0, z0, signal)
-        return (signal[-1], z[-1]), jax.vmap(self._output)(signal, z)
 
     def _run_autodiff(self, state, signal):
         """`_run` differentiated by plain autodiff through the scan (the reference for the hand-derived JVP)."""
@@ -502,7 +483,31 @@ class _AbstractStopCell(AbstractHysteresis):
         """The operator's output from the input and the new stop values."""
 
 
-class PlayOperator(_AbstractStopCell):
+class _AbstractPlainStopCell(_AbstractStopCell):
+    """The play and stop operators: the checks of `thresholds` and `smoothing`, the loop of `stop_scan` and the
+    root-finding inverse (final here)."""
+
+    def check(self):
+        return eqx.tree_at(
+            lambda m: (m.thresholds, m.smoothing),
+            self,
+            (check_positive(self.thresholds, "thresholds", allow_zero=True), error_if_bad_smoothing(self.smoothing)),
+        )
+
+    def _run(self, state, signal):
+        # The exact or smooth loop is chosen outside the scan (see `run_exact_or_smooth`); `stop_scan` carries the
+        # hand-derived forward sensitivities (fast `jax.jacfwd`).
+        v0, z0 = state
+        z = stop_scan(exact_flag(self.smoothing), self.thresholds, self.smoothing, v0, z0, signal)
+        return (signal[-1], z[-1]), jax.vmap(self._output)(signal, z)
+
+    def inverse(
+        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
+    ) -> AbstractHysteresis:
+        return root_finding_inverse(self, lower, upper, max_iterations)
+
+
+class PlayOperator(_AbstractPlainStopCell):
     r"""The play (backlash) operator $P_r$, for one threshold or a vector of thresholds at once.
 
     $P_r[v]_k = \max\bigl(v_k - r, \min(v_k + r, P_r[v]_{k-1})\bigr)$ (paper 001 eq. 7), started from the
@@ -537,19 +542,8 @@ class PlayOperator(_AbstractStopCell):
     def _output(self, v, z):
         return v - z
 
-    def check(self) -> "PlayOperator":
-        return self._stop_check()
 
-    def _run(self, state, signal):
-        return self._stop_run(state, signal)
-
-    def inverse(
-        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
-    ) -> AbstractHysteresis:
-        return root_finding_inverse(self, lower, upper, max_iterations)
-
-
-class StopOperator(_AbstractStopCell):
+class StopOperator(_AbstractPlainStopCell):
     r"""The stop (elastic–perfectly-plastic) operator $S_r = I - P_r$, for one threshold or a vector of thresholds.
 
     $S_r[v]_k = \operatorname{clip}(S_r[v]_{k-1} + v_k - v_{k-1}, -r, r)$, started from the demagnetised state
@@ -581,17 +575,6 @@ class StopOperator(_AbstractStopCell):
 
     def _output(self, v, z):
         return z
-
-    def check(self) -> "StopOperator":
-        return self._stop_check()
-
-    def _run(self, state, signal):
-        return self._stop_run(state, signal)
-
-    def inverse(
-        self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100
-    ) -> AbstractHysteresis:
-        return root_finding_inverse(self, lower, upper, max_iterations)
 
 
 def exact_cell(op: AbstractHysteresis):
