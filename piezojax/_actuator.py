@@ -350,7 +350,9 @@ def _one_loop_or_blocks(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOu
         None if m.creep is None else zoh_cell(m.creep, dt),
         None if m.dynamics is None else m.dynamics.discretise(dt, "zoh"),
     )
-    dynamic, static = eqx.partition((m, v, dt, initial, cells), eqx.is_array)
+    # Only traced values enter the custom_jvp: concrete ones (a concrete 0 smoothing above all) stay concrete for the
+    # blocks' rules, which then compile their exact branch alone.
+    dynamic, static = eqx.partition((m, v, dt, initial, cells), lambda x: isinstance(x, jax.core.Tracer))
 
     def blocks(dynamic):
         m, v, dt, initial, _ = eqx.combine(dynamic, static)
