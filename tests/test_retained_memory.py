@@ -1,0 +1,54 @@
+"""`pj.retain_freed_memory` (called by `pj.enable_fast_cpu_scans`): freed multi-megabyte blocks stay in the process,
+so allocating the same buffers again (as every call of a compiled function does) faults no pages in."""
+
+import platform
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import piezojax as pj
+
+_GLIBC = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+
+# In a fresh process (the tests' own heaps are already retained by conftest): minor page faults of three rounds of
+# allocating, filling and freeing eight 8 MiB arrays, first with glibc's defaults (64 MiB freed at once is more than
+# its dynamic trim threshold, so the heap is trimmed and faulted in again), then with the memory retained.
+SCRIPT = textwrap.dedent("""
+    import resource
+    import numpy as np
+
+    def faults(rounds=3):
+        def one():
+            arrays = [np.ones(1 << 20) for _ in range(8)]
+            del arrays
+        one()
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for _ in range(rounds):
+            one()
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+    fresh = faults()
+    import piezojax
+    ok = piezojax.retain_freed_memory()
+    print(fresh, faults(), ok)
+""")
+
+
+@pytest.mark.skipif(not _GLIBC, reason="the settings are glibc's (mallopt)")
+def test_freed_blocks_are_reused_without_page_faults():
+    out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    fresh, retained, ok = out.stdout.split()
+    assert ok == "True"
+    assert int(fresh) >= 100, out.stdout  # 3 x 64 MiB faulted in (49k pages; fewer with transparent huge pages)
+    assert int(retained) <= int(fresh) // 20, out.stdout
+
+
+def test_enable_fast_cpu_scans_retains_memory_and_keeps_its_flag(monkeypatch):
+    calls = []
+    monkeypatch.setattr(pj._config, "retain_freed_memory", lambda: calls.append(1) or True)
+    monkeypatch.setenv("XLA_FLAGS", pj._config.FAST_CPU_SCAN_FLAG)
+    assert pj.enable_fast_cpu_scans()  # the flag is already there (the tests' conftest set it)
+    assert calls == [1]
