@@ -216,3 +216,22 @@ def test_mismatched_lengths_and_nan(integrator, stack, tia):
         tia(np.ones(10), -1.0)
     with pytest.raises(pj.PiezojaxValueError, match="v_in"):
         tia(np.ones((2, 10)), DT)
+
+
+def test_running_integral_keeps_its_parameters_outside_the_sum():
+    from piezojax._circuits.base import running_integral
+
+    x = np.sin(np.linspace(0, 7, 400)) + 0.3
+    gain, bias, dt = -1 / 3e9, 2e-13, 1e-3
+    expected = dt * np.cumsum(gain * x + bias)
+    got = np.asarray(running_integral(jnp.asarray(x), dt, gain, bias))
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12 * np.max(np.abs(expected)))
+    np.testing.assert_allclose(np.asarray(running_integral(jnp.asarray(x), dt)), dt * np.cumsum(x), rtol=1e-13)
+    # the Jacobian with respect to (gain, bias) is [dt sum x, dt (k + 1)] ...
+    jac = jax.jacfwd(lambda p: running_integral(jnp.asarray(x), dt, p[0], p[1]))(jnp.array([gain, bias]))
+    np.testing.assert_allclose(np.asarray(jac[:, 0]), dt * np.cumsum(x), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(jac[:, 1]), dt * np.arange(1, x.size + 1), rtol=1e-13)
+    # ... formed with the data's running sum only: no running sum of the tangents (one per direction under jacfwd)
+    jaxpr = jax.make_jaxpr(jax.jacfwd(lambda p: running_integral(jnp.asarray(x), dt, p[0], p[1])))(
+        jnp.array([gain, bias]))
+    assert str(jaxpr).count("cumsum[") == 1

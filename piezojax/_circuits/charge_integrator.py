@@ -119,5 +119,5 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         m, dt, s = prepare(self, dt, v_in=v_in, f_ext=f_ext)
         v = s["v_in"]
         q = m._charge(v, dt, s["f_ext"])
-        leak = running_integral(v / m.leakage_resistance + m.bias_current, dt)
+        leak = running_integral(v, dt, 1 / m.leakage_resistance, m.bias_current)
         return -(q - m.reference_capacitance * v + leak) / m.integrator_capacitance

@@ -131,7 +131,7 @@ class ForceDisplacementObserver(AbstractObserver):
         return eqx.tree_at(lambda o: o.displacement_coefficient, m, _check_nonzero(m.displacement_coefficient))
 
     def _compensated_charge(self, v: Array, v_out: Array, dt: Array) -> Array:
-        leak = running_integral(v / self.leakage_resistance + self.bias_current, dt)
+        leak = running_integral(v, dt, 1 / self.leakage_resistance, self.bias_current)
         return -self.integrator_capacitance * v_out + self.reference_capacitance * v - leak
 
     def compensated_charge(self, v_in: SignalLike, v_out: SignalLike, dt: ArrayLike) -> Signal:

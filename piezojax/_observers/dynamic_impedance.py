@@ -97,7 +97,7 @@ class DynamicImpedanceObserver(AbstractObserver):
         return eqx.tree_at(lambda o: o.gamma, self, self.gamma * 0)
 
     def _charge(self, v_in: Array, v_out: Array, dt: Array) -> Array:
-        return running_integral(-v_out / self.feedback_resistance - self.bias_current, dt) - self.capacitance * v_in
+        return running_integral(v_out, dt, -1 / self.feedback_resistance, -self.bias_current) - self.capacitance * v_in
 
     def deformation_charge(self, v_in: SignalLike, v_out: SignalLike, dt: ArrayLike) -> Signal:
         r"""$Q_\delta$ of eq. (5) [C] from the drive `v_in` and amplifier output `v_out`."""
