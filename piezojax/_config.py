@@ -3,6 +3,7 @@ here runs on import."""
 
 import contextlib
 import os
+import sys
 import warnings
 from collections.abc import Iterator
 
@@ -21,34 +22,41 @@ FAST_CPU_SCAN_FLAG = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_
 # freed memory in the process's heaps removes them. mallopt parameters (glibc <malloc.h>) and the values used:
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
 _RETAINED_MALLOC = (
-    (_M_MMAP_THRESHOLD, 32 << 20),  # blocks up to 32 MiB (glibc's maximum) come from the heap, not fresh mmaps
+    (_M_MMAP_THRESHOLD, 32 << 20),  # blocks up to 32 MiB (64-bit glibc's maximum) from the heaps, not fresh mmaps
     (_M_TRIM_THRESHOLD, 1 << 30),  # the main heap is trimmed only above 1 GiB of free memory at its top
     (_M_TOP_PAD, 256 << 20),  # threads' heaps (64 MiB each) are never shrunk, and the main heap grows in 256 MiB
 )
+# The same from the shell, before the process starts (glibc tunables, one word):
+# GLIBC_TUNABLES=glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=1073741824:
+#                glibc.malloc.top_pad=268435456
 
 
 def retain_freed_memory() -> bool:
     """Keep freed memory in the process (glibc `mallopt`) so repeated calls do not fault their buffers in again.
 
-    Process-wide and effective at any time; the price is a resident size that stays near its peak (up to about
-    1 GiB more than in use) until the process ends. A no-op returning False where the C library is not glibc.
+    Process-wide, effective at any time and not undone: the price is a resident size that stays near the peak of
+    every allocator heap until the process ends. Does nothing and returns False where the C library is not glibc
+    on Linux.
 
-    **Returns:** True if every setting was accepted.
+    **Returns:** True if every setting was accepted (each is tried).
     """
+    if not sys.platform.startswith("linux"):
+        return False
     try:
         import ctypes
 
-        libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without mallopt)
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError, TypeError):  # no mallopt in the process (a C library other than glibc)
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return all(mallopt(param, value) == 1 for param, value in _RETAINED_MALLOC)
+    accepted = [mallopt(param, value) == 1 for param, value in _RETAINED_MALLOC]
+    return all(accepted)
 
 
-def enable_fast_cpu_scans() -> bool:
-    """Raise XLA:CPU's small-loop threshold so long `lax.scan` bodies compile to a fused loop, and keep freed
-    memory in the process (`retain_freed_memory`) so the loops' output buffers are not faulted in on every call.
+def enable_fast_cpu_scans(retain_memory: bool = True) -> bool:
+    """Raise XLA:CPU's small-loop threshold so long `lax.scan` bodies compile to a fused loop, and (unless
+    `retain_memory=False`) keep freed memory in the process (`retain_freed_memory`) so the loops' output buffers are
+    not faulted in on every call.
 
     Appends `FAST_CPU_SCAN_FLAG` to the `XLA_FLAGS` environment variable. The flag takes effect only if this is called
     before JAX initialises its backends (before the first computation); afterwards it warns and sets only the memory
@@ -58,7 +66,8 @@ def enable_fast_cpu_scans() -> bool:
 
     **Returns:** True if the flag is (now) in `XLA_FLAGS` before backend initialisation, else False.
     """
-    retain_freed_memory()
+    if retain_memory:
+        retain_freed_memory()
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_cpu_small_while_loop_byte_threshold" in flags:
         return True

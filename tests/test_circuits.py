@@ -235,3 +235,5 @@ def test_running_integral_keeps_its_parameters_outside_the_sum():
     jaxpr = jax.make_jaxpr(jax.jacfwd(lambda p: running_integral(jnp.asarray(x), dt, p[0], p[1])))(
         jnp.array([gain, bias]))
     assert str(jaxpr).count("cumsum[") == 1
+    with pytest.raises(pj.PiezojaxValueError, match="`gain` and `bias` must be scalars"):
+        running_integral(jnp.asarray(x), dt, gain, jnp.ones(x.size))

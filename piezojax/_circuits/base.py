@@ -73,11 +73,13 @@ def prepare(module: eqx.Module, dt: ArrayLike, **signals: ArrayLike):
 
 def running_integral(x: Array, dt: Array, gain: ArrayLike = 1.0, bias: ArrayLike = 0.0) -> Array:
     r"""$\int_0^{t_k} (g\,x + b)\,dt = dt\,\bigl(g \sum_{j \le k} x_j + (k + 1)\,b\bigr)$ for interval-mean samples
-    `x` (see the module docstring), gain $g$ and constant $b$.
+    `x` (see the module docstring), scalar gain $g$ and constant $b$.
 
     The parameters stay outside the running sum, so their derivatives need no running sum of their own: a forward-mode
     Jacobian over P directions sums the data once instead of P times (the sum was a fifth of the paper 001 observer's
     Jacobian, `python -m experiments.bench_observer`)."""
+    if jnp.ndim(gain) or jnp.ndim(bias):  # a per-sample term belongs in `x`
+        raise PiezojaxValueError(f"`gain` and `bias` must be scalars, got shapes {jnp.shape(gain)}, {jnp.shape(bias)}")
     steps = jnp.arange(1, x.shape[0] + 1, dtype=x.dtype)
     return dt * (gain * jnp.cumsum(x) + bias * steps)
 
