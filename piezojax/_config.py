@@ -59,8 +59,8 @@ def enable_fast_cpu_scans(retain_memory: bool = True) -> bool:
     not faulted in on every call.
 
     Appends `FAST_CPU_SCAN_FLAG` to the `XLA_FLAGS` environment variable. The flag takes effect only if this is called
-    before JAX initialises its backends (before the first computation); afterwards it warns and sets only the memory
-    retention. The flag alone is, in the shell,
+    before JAX initialises its backends (before the first computation); afterwards it warns, and only the memory
+    retention (if asked for) takes effect. The flag alone is, in the shell,
     `export XLA_FLAGS=--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000`.
     The command-line tools, experiments and tests call it; importing piezojax never does.
 
