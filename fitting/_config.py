@@ -29,7 +29,9 @@ from . import _nonlinear_kinds  # noqa: F401 - registers the [model] kinds
 from ._data import CHANNELS, parse_columns, parse_units
 from ._kinds import (
     DEFAULT_KIND,
+    DUPLICATE_THRESHOLD,
     MAX_POLYNOMIAL,
+    TINY,
     BlockKind,
     ConfigTable,
     StartData,
@@ -295,10 +297,12 @@ class ModelConfig:
             models.sort(key=lambda m: _start_error(m, dataset))
         return [self._constrain(m) for m in models]
 
-    def reseeded(self, model, dataset, free) -> tuple[object, int] | None:
+    def reseeded(self, model, dataset, free, fit_args: Mapping | None = None) -> tuple[object, int] | None:
         """The fitted `model` with the hysteresis kind's dead elements re-seeded (`BlockKind.reseed`), reparametrised
         as `build` returns it, and how many moved; `None` when none is dead, the kind does not re-seed, or `free`
-        does not fit both the weights and the thresholds of the hysteresis."""
+        does not fit both the weights and the thresholds of the hysteresis. With `fit_args` (the `predictor`,
+        `targets` and `weights` of the fit) freed plays go where the residual needs them (`_residual_thresholds`),
+        else to the widest gaps between the live thresholds."""
         if "hysteresis" not in self._block_tables() or self.hysteresis_kind.empty:
             return None
         where = self._block_path("hysteresis")
@@ -309,7 +313,11 @@ class ModelConfig:
         get = _getter(where.split("."))
         block = get(plain)
         vmax = max(float(np.max(np.abs(np.asarray(e.v_in)))) for e in dataset)
-        new = self.hysteresis_kind.reseed(self.hysteresis_options, block, vmax)
+        place = None
+        if fit_args is not None:
+            def place(thresholds, weights, n):
+                return _residual_thresholds(plain, get, where, dataset, fit_args, thresholds, weights, n, vmax)
+        new = self.hysteresis_kind.reseed(self.hysteresis_options, block, vmax, place)
         if new is None:
             return None
         moved = int(np.sum(~np.isin(np.asarray(new.thresholds), np.asarray(block.thresholds))))
@@ -346,6 +354,60 @@ class ModelConfig:
         for attr, reparam in self.model_kind.constraints(self).items():
             model = pj.constrain(model, _getter([attr]), reparam)
         return model
+
+
+# candidate thresholds scored when a freed play is placed where the residual needs it
+RESEED_GRID = 64
+
+
+def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thresholds, weights, n: int,
+                         vmax: float) -> list[float]:
+    r"""Up to `n` thresholds for freed plays, chosen where the fit's residual needs them: the live plays
+    (`thresholds`, `weights`) and `RESEED_GRID` candidate plays of weight 0 on $(0, \max|v|)$ are linearised
+    together in their weights ($J^\top J$, $J^\top r$ of the fit's weighted residual, one forward-mode pass), and
+    candidates are chosen greedily, each the one whose weight, fitted jointly with the live and chosen ones by
+    linear least squares, lowers the cost most while coming out positive (orthogonal matching pursuit on the
+    normal equations). Fewer than `n` when fewer candidates would lower the cost."""
+    from ._problem import Problem
+
+    tol = DUPLICATE_THRESHOLD * vmax
+    grid = (np.arange(RESEED_GRID) + 0.5) / RESEED_GRID * vmax
+    grid = grid[np.min(np.abs(grid[:, None] - np.asarray(thresholds)[None, :]), axis=1) > tol]
+    if grid.size == 0:
+        return []
+    r = np.r_[np.asarray(thresholds, float), grid]
+    w = np.r_[np.asarray(weights, float), np.zeros(grid.size)]
+    order = np.argsort(r)
+    block = get(plain)
+    trial = eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
+                        (jnp.asarray(w[order], block.weights.dtype), jnp.asarray(r[order], block.thresholds.dtype)))
+    problem = Problem(eqx.tree_at(get, plain, trial), dataset, predictor=fit_args.get("predictor"),
+                      targets=fit_args.get("targets"), weights=fit_args.get("weights", "range"),
+                      free=[f"{where}.weights"], scales="value")
+    _, g, h = (np.asarray(x, float) for x in problem.normal_equations(problem.u0))
+    if not (np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
+        return []
+    d = np.sqrt(np.maximum(np.diag(h), TINY))  # unit columns: the choice does not depend on the weights' scales
+    g, h = g / d, h / np.outer(d, d)
+    position = np.empty_like(order)
+    position[order] = np.arange(order.size)
+    live = list(position[: len(thresholds)])
+    candidates = position[len(thresholds):]
+    chosen: list[int] = []
+    for _ in range(n):
+        best, best_decrease = None, 0.0
+        for j in candidates:
+            if j in chosen or any(abs(r[order][j] - r[order][c]) <= tol for c in chosen):
+                continue
+            t = live + chosen + [j]
+            step = -np.linalg.solve(h[np.ix_(t, t)] + 1e-10 * np.eye(len(t)), g[t])
+            decrease = -float(g[t] @ step)
+            if step[-1] > 0 and decrease > best_decrease:
+                best, best_decrease = j, decrease
+        if best is None:
+            break
+        chosen.append(best)
+    return [float(r[order][j]) for j in chosen]
 
 
 def _getter(path: list[str]):

@@ -51,6 +51,8 @@ MAX_POLYNOMIAL = 6
 DYNAMICS_ORDERS = (0, 1, 2, 3, 4, 5, 6, 7, 8)
 
 TINY = np.finfo(float).tiny
+# plays whose thresholds lie closer than this fraction of the largest |input| count as one when re-seeding
+DUPLICATE_THRESHOLD = 1e-4
 # plays of the PI surrogate that starts creep and dynamics jointly when the hysteresis is of another family
 SURROGATE_PLAYS = 10
 
@@ -404,9 +406,9 @@ class BlockKind:
         """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
         return 1
 
-    def reseed(self, o: dict, block, max_input: float):
+    def reseed(self, o: dict, block, max_input: float, place=None):
         """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
-        act, or `None` when none is dead or the kind does not re-seed (default)."""
+        act, or `None` when none is dead or the kind does not re-seed (default). `place`: see `_reseed_plays`."""
         return None
 
     def optional_start(self, o: dict, data: StartData) -> dict:
@@ -545,15 +547,19 @@ class PrandtlIshlinskiiKind(BlockKind):
     def cold_start_args(self, o, config):
         return {"n_plays": o["plays"]}
 
-    def reseed(self, o, block, max_input):
+    def reseed(self, o, block, max_input, place=None):
         r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
         leaves $[-(\max|v| - r), \max|v| - r]$), is below $10^{-3}$ of the operator's,
         $|w_0|\max|v| + \sum_i w_i(\max|v| - r_i)^+$: a negligible weight, a threshold at or above $\max|v|$ (the
         play never moves), or one just below it (a heavy play that moves by millivolts, measured on the independent
-        plant: a weight of 20 nm/V at 99.97 V of 100) — moved one by one to the middle of the widest gap between the
-        live thresholds on $[0, \max|v|]$, at 1 % of the live plays' mean weight (small, so the re-seeded model
-        starts where the fit ended, and not zero, so the play's threshold has a gradient)."""
-        return _reseed_plays(block, max_input)
+        plant: a weight of 20 nm/V at 99.97 V of 100) — and plays whose thresholds coincide (closer than
+        `DUPLICATE_THRESHOLD` of $\max|v|$: the fit pulled them onto one kink of the data; they act as one, so the
+        heaviest keeps their summed weight and the others are freed) are moved to new thresholds at 1 % of the live
+        plays' mean weight (small, so the re-seeded model starts where the fit ended, and not zero, so the play's
+        threshold has a gradient). `place(thresholds, weights, n)` chooses the new thresholds (the command line:
+        where the residual needs them, `ModelConfig.reseeded`); without it, or for the plays it leaves, each goes
+        in turn to the middle of the widest gap between the thresholds on $[0, \max|v|]$."""
+        return _reseed_plays(block, max_input, place)
 
     def from_cold_start(self, o, block):
         return {"weights": np.asarray(block.weights), "thresholds": np.asarray(block.thresholds),
@@ -608,25 +614,38 @@ class PlayKind(BlockKind):
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
 
-    def reseed(self, o, block, max_input):
+    def reseed(self, o, block, max_input, place=None):
         """As `prandtl_ishlinskii`'s."""
-        return _reseed_plays(block, max_input)
+        return _reseed_plays(block, max_input, place)
 
 
-def _reseed_plays(block, max_input: float):
+def _reseed_plays(block, max_input: float, place=None):
+    """`block` with its dead and coinciding plays moved (see `PrandtlIshlinskiiKind.reseed`), or `None`. `place(
+    thresholds, weights, n)`, when given, proposes up to `n` thresholds for the freed plays from the live ones
+    (`ModelConfig.reseeded`: where the residual needs them); the rest go to the widest gaps."""
     w, r = np.asarray(block.weights, float), np.asarray(block.thresholds, float)
     reach = np.abs(w) * np.maximum(max_input - r, 0.0)
     total = float(np.sum(reach)) + abs(float(block.w0)) * max_input
     dead = reach < 1e-3 * max(total, TINY)
+    # plays that share a threshold act as one (their weights add): the heaviest keeps the sum, the others are free
+    w = w.copy()
+    live = np.flatnonzero(~dead)
+    live = live[np.argsort(r[live], kind="stable")]
+    for group in np.split(live, np.flatnonzero(np.diff(r[live]) > DUPLICATE_THRESHOLD * max_input) + 1):
+        if group.size > 1:
+            keep = group[np.argmax(np.abs(w[group]))]
+            w[keep] = np.sum(w[group])
+            dead[group[group != keep]] = True
     if not dead.any() or dead.all() or not max_input > 0:
         return None
-    live_r, live_w = r[~dead], w[~dead]
-    new_r = list(live_r)
-    for _ in range(int(dead.sum())):
+    live_r, live_w, n_free = r[~dead], w[~dead], int(dead.sum())
+    proposed = [] if place is None else [float(x) for x in place(live_r, live_w, n_free)][:n_free]
+    new_r = list(live_r) + proposed
+    for _ in range(n_free - len(proposed)):
         pts = np.r_[0.0, np.sort(new_r), max_input]
         i = int(np.argmax(np.diff(pts)))
         new_r.append(0.5 * (pts[i] + pts[i + 1]))
-    new_w = np.r_[live_w, np.full(int(dead.sum()), 0.01 * float(np.mean(live_w)))]
+    new_w = np.r_[live_w, np.full(n_free, 0.01 * float(np.mean(live_w)))]
     order = np.argsort(new_r)
     return eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
                        (jnp.asarray(new_w[order], block.weights.dtype),

@@ -513,6 +513,9 @@ def _check_fit_data(dataset, targets) -> None:
 # the data-driven starts are fitted together (under vmap) only while they need no more than this (measured: two starts
 # on one 1e6-sample record peaked at 2.3 GB resident and took 3.3 times as long as one, which peaked at 1.55 GB)
 MULTI_START_MEMORY = 3 * 2**29
+# at most this many re-seeded fits after the first (each kept only when it lowers the cost), another only after one
+# that lowered the cost by more than this fraction
+RESEED_ROUNDS, RESEED_GAIN = 3, 1e-3
 
 
 def _memory_estimate(config, dataset, num_free: int) -> int:
@@ -555,26 +558,49 @@ def _check_memory(config, dataset, num_free: int) -> None:
 
 
 def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
-    """One more fit from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the
-    fit left without weight or above the largest voltage); the lower cost is kept. Returns the result kept and, for
-    `result.json`, what was done (`None` when nothing was dead)."""
+    """More fits from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the fit
+    left without weight, above the largest voltage, or on the threshold of another, placed where the residual
+    needs them), each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered
+    the cost by more than `RESEED_GAIN` and left elements dead again (plays pulled onto one kink of the data's
+    reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
+    re-seeded fit's last accepted point is kept if its cost is lower. Returns the result kept and, for
+    `result.json`, what was done (`None` when nothing was dead; `"interrupted": True` when an interrupt ended it)."""
     import fitting
 
     from ._solver import HARD_FAILURES
 
-    again = config.reseeded(result.model, dataset, free)
-    if again is None:
+    rounds, interrupted = [], False
+    while len(rounds) < RESEED_ROUNDS:
+        try:
+            again = config.reseeded(result.model, dataset, free, fit_args)
+            if again is None:
+                break
+            model, moved = again
+            _info(f"{moved} dead or coinciding hysteresis element(s) re-seeded where the residual needs them; "
+                  "fitting again", quiet)
+            second = fitting.fit(model, dataset, **fit_args)
+        except KeyboardInterrupt:  # while placing the plays or compiling the new problem: the fits so far stand
+            interrupted = True
+            break
+        interrupted = second.code == "interrupted"
+        kept = (second.code not in HARD_FAILURES or interrupted) and second.cost < result.cost
+        rounds.append({"elements": moved, "cost_before": float(result.cost), "cost_after": float(second.cost),
+                       "steps": int(second.steps), "kept": bool(kept)})
+        _info(f"re-seeded fit{' (interrupted)' if interrupted else ''}: cost {second.cost:.6e} against "
+              f"{result.cost:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
+        gain = result.cost - second.cost
+        if kept:
+            result = second
+        if not kept or interrupted or gain < RESEED_GAIN * rounds[-1]["cost_before"]:
+            break
+    if not rounds and not interrupted:
         return result, None
-    model, moved = again
-    _info(f"{moved} dead hysteresis element(s) re-seeded where the live ones leave the widest gaps; fitting again",
-          quiet)
-    second = fitting.fit(model, dataset, **fit_args)
-    kept = second.code == "interrupted" or (second.code not in HARD_FAILURES and second.cost < result.cost)
-    info = {"elements": moved, "cost_before": float(result.cost), "cost_after": float(second.cost),
-            "steps": int(second.steps), "kept": bool(kept)}
-    _info(f"re-seeded fit: cost {second.cost:.6e} against {result.cost:.6e}; "
-          f"{'kept' if kept else 'the first fit kept'}", quiet)
-    return (second if kept else result), info
+    before = rounds[0]["cost_before"] if rounds else float(result.cost)
+    info = {"elements": sum(r["elements"] for r in rounds), "cost_before": before, "cost_after": float(result.cost),
+            "kept": any(r["kept"] for r in rounds), "rounds": rounds}
+    if interrupted:
+        info["interrupted"] = True
+    return result, info
 
 
 def _safe_name(name: str) -> str:
@@ -639,7 +665,8 @@ def _cmd_fit(args) -> int:
         reseeded = None
         if result.code != "interrupted":
             result, reseeded = _reseed(config, result, dataset, free, fit_args, quiet)
-        if result.code == "interrupted":
+        interrupted = result.code == "interrupted" or bool(reseeded and reseeded.get("interrupted"))
+        if interrupted:
             _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
         extra = {
             "cli": {
@@ -668,6 +695,10 @@ def _cmd_fit(args) -> int:
     _out(result.report())
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
+        return _interrupt_status()
+    if interrupted:
+        _info(f"interrupted while re-seeding dead plays: the best fit so far is saved in {out} (result.json: "
+              "cli.reseeded.interrupted)")
         return _interrupt_status()
     if not result.success:
         _info(f"the fit did not converge ({result.reason}); results written to {out}")

@@ -272,3 +272,80 @@ def test_the_command_line_refits_from_re_seeded_plays_and_keeps_the_better(tmp_p
     assert info["elements"] >= 1
     assert result["cost"] == pytest.approx(min(info["cost_before"], info["cost_after"]), rel=1e-12)
     assert info["kept"] == (info["cost_after"] < info["cost_before"])
+    rounds = info["rounds"]
+    assert 1 <= len(rounds) <= 3 and sum(r["elements"] for r in rounds) == info["elements"]
+    assert rounds[0]["cost_before"] == info["cost_before"]
+    for r in rounds:
+        assert r["kept"] == (r["cost_after"] < r["cost_before"])
+    for a, b in zip(rounds, rounds[1:]):  # a round follows only one that was kept
+        assert a["kept"] and b["cost_before"] == a["cost_after"]
+
+
+def test_coinciding_plays_count_as_one_and_free_the_others():
+    from fitting._kinds import _reseed_plays
+
+    pi = pj.PrandtlIshlinskii(jnp.array([1.0, 0.3, 0.2, 0.4]), jnp.array([1.0, 5.0, 5.0001, 8.0]), w0=0.3)
+    new = _reseed_plays(pi, 10.0)  # 5 and 5.0001 V act as one play of weight 0.5; the other goes to the widest gap
+    np.testing.assert_allclose(new.thresholds, [1.0, 3.0, 5.0, 8.0])
+    np.testing.assert_allclose(new.weights, [1.0, 0.01 * np.mean([1.0, 0.5, 0.4]), 0.5, 0.4])
+    # a proposal for where freed plays go is taken first (at most as many as are freed), the rest to the widest gaps
+    two_free = pj.PrandtlIshlinskii(jnp.array([1.0, 1e-12, 0.3, 0.2]), jnp.array([1.0, 2.0, 5.0, 5.00001]), w0=0.3)
+    asked = []
+    placed = _reseed_plays(two_free, 10.0, lambda r, w, n: asked.append((list(r), list(w), n)) or [9.0, 7.0, 6.0])
+    assert asked == [([1.0, 5.0], [1.0, 0.5], 2)]
+    np.testing.assert_allclose(placed.thresholds, [1.0, 5.0, 7.0, 9.0])
+    partly = _reseed_plays(two_free, 10.0, lambda r, w, n: [9.0])
+    np.testing.assert_allclose(partly.thresholds, [1.0, 3.0, 5.0, 9.0])
+    assert _reseed_plays(pj.PrandtlIshlinskii(jnp.array([1.0, 0.5]), jnp.array([1.0, 5.0])), 10.0,
+                         lambda r, w, n: pytest.fail("nothing is freed")) is None
+
+
+def test_freed_plays_go_where_the_residual_needs_them():
+    """A plant with plays at 10, 30 and 80 V fitted with the third play dead: the residual is that play's output,
+    and the placement finds it (the widest gap would put it at 62.6 V)."""
+    t = np.arange(3000) / 1000.0
+    v = 100 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-0.4 * t)
+    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 0.25]), jnp.array([10.0, 30.0, 80.0]), w0=0.5)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(truth(jnp.asarray(v))))])
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n[state]\noffset = false\n', "pi.toml")
+    fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 1e-12]), jnp.array([10.0, 30.0, 99.9]), w0=0.5))
+    free = cfg.fit_free(["displacement"])
+    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
+    assert moved == 1
+    r = np.asarray(pj.unwrap(model).hysteresis.thresholds)
+    np.testing.assert_allclose(r[:2], [10.0, 30.0])
+    assert abs(r[2] - 80.0) < 100 / 64  # within one candidate spacing of the missing play
+    blind, _ = cfg.reseeded(cfg._constrain(fitted), ds, free)
+    np.testing.assert_allclose(pj.unwrap(blind).hysteresis.thresholds, [10.0, 30.0, (30 + np.max(np.abs(v))) / 2])
+
+
+def test_an_interrupt_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch):
+    """SIGINT while the dead plays are being placed (before the re-seeded fit's solver runs): the first fit is
+    written, result.json says the re-seeding was interrupted, and the exit status is 130."""
+    import json
+    import os
+    import signal
+
+    from fitting._config import ModelConfig
+    from fitting.cli import main
+
+    t = np.arange(800) / 400.0
+    v = 100 * np.sin(2 * np.pi * 1.5 * t) * np.exp(-0.5 * t)
+    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.2]), jnp.array([10.0, 40.0]), w0=0.5)
+    y = np.asarray(truth(jnp.asarray(v))) * 1e-7
+    y = y + 1e-3 * np.ptp(y) * np.random.default_rng(2).standard_normal(t.size)
+    np.savetxt(tmp_path / "d.csv", np.column_stack([t, v, y]), delimiter=",", header="t,v_in,displacement",
+               comments="")
+    (tmp_path / "pi.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 8\n')
+
+    def interrupted(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # the command's handler raises it here, as Ctrl-C would
+        pytest.fail("the interrupt was not raised")
+
+    monkeypatch.setattr(ModelConfig, "reseeded", interrupted)
+    code = main(["fit", str(tmp_path / "pi.toml"), str(tmp_path / "d.csv"), "--out", str(tmp_path / "fit"),
+                 "--quiet", "--no-figures"])
+    assert code == 128 + signal.SIGINT
+    result = json.loads((tmp_path / "fit" / "result.json").read_text())
+    assert result["cli"]["reseeded"]["interrupted"] is True and result["cli"]["reseeded"]["rounds"] == []
+    assert result["code"] != "interrupted" and (tmp_path / "fit" / "model.eqx").exists()
