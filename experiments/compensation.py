@@ -7,8 +7,9 @@ Data: `experiments/data/piezo_150V_1Hz/hysteresis_v_150_1hz.csv` (see `experimen
    - **truth**: `experiments/configs/piezo_150v_pi.toml` — PI(10) → cubic output polynomial → lag creep in series →
      resonance, offset and prehistory (held out on the record's last 3 s: about 0.06 µm, the sensor's noise);
    - **compensator**: `experiments/configs/piezo_150v_pi_creep.toml` — PI(10) and two Kelvin–Voigt lags in
-     parallel, then the resonance: a simpler model of the same record, so the compensation is scored against a
-     plant it does not match exactly (the real actuator is not available in closed form).
+     parallel, then the resonance, offset and prehistory: a simpler model of the same record (held out: about
+     0.07 µm), so the compensation is scored against a plant it does not match exactly (the real actuator is not
+     available in closed form).
 2. Feedforward voltages for ±15 µm sines about the middle of the measured stroke, at 1 and 10 Hz, ramped in from the
    rest position over 0.5 s and scored after the first second, within ±150 V, from each model's
    - **plain gain**: the least-squares line $x = k v + b$ of the measured record, $V = (r - b)/k$;
@@ -19,7 +20,7 @@ Data: `experiments/data/piezo_150V_1Hz/hysteresis_v_150_1hz.csv` (see `experimen
    voltages show what a model error costs; the truth's own show the inversion itself (exact up to its low-pass).
 
 Run: `python -m experiments.compensation [--fits DIR] [--out results/compensation]` (about 3 min on 2
-cores: the two fits 80 s and 62 s, the study 24 s; `--fits DIR` reuses `DIR/truth` and `DIR/compensator` written
+cores: the two fits 60 s and 107 s, the study 21 s; `--fits DIR` reuses `DIR/truth` and `DIR/compensator` written
 earlier by this script, refitting one whose fit was interrupted).
 """
 
