@@ -564,12 +564,13 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     the cost by more than `RESEED_GAIN` and left elements dead again (plays pulled onto one kink of the data's
     reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
     re-seeded fit's last accepted point is kept if its cost is lower. Returns the result kept and, for
-    `result.json`, what was done (`None` when nothing was dead; `"interrupted": True` when an interrupt ended it)."""
+    `result.json`, what was done (`None` when nothing was dead; `"interrupted": True` when an interrupt ended it;
+    `"error"` when a round raised: the fit so far is kept and the error reported as a warning)."""
     import fitting
 
     from ._solver import HARD_FAILURES
 
-    rounds, interrupted = [], False
+    rounds, interrupted, failure = [], False, None
     while len(rounds) < RESEED_ROUNDS:
         try:
             again = config.reseeded(result.model, dataset, free, fit_args)
@@ -582,6 +583,10 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
         except KeyboardInterrupt:  # while placing the plays or compiling the new problem: the fits so far stand
             interrupted = True
             break
+        except Exception as e:  # noqa: BLE001 - a finished fit is never lost to its optional refinement
+            failure = f"{type(e).__name__}: {' '.join(str(e).split())}"
+            _info(f"warning: re-seeding the dead plays failed ({failure}); the fit so far is kept")
+            break
         interrupted = second.code == "interrupted"
         kept = (second.code not in HARD_FAILURES or interrupted) and second.cost < result.cost
         rounds.append({"elements": moved, "cost_before": float(result.cost), "cost_after": float(second.cost),
@@ -593,13 +598,15 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             result = second
         if not kept or interrupted or gain < RESEED_GAIN * rounds[-1]["cost_before"]:
             break
-    if not rounds and not interrupted:
+    if not rounds and not interrupted and failure is None:
         return result, None
     before = rounds[0]["cost_before"] if rounds else float(result.cost)
     info = {"elements": sum(r["elements"] for r in rounds), "cost_before": before, "cost_after": float(result.cost),
             "kept": any(r["kept"] for r in rounds), "rounds": rounds}
     if interrupted:
         info["interrupted"] = True
+    if failure is not None:
+        info["error"] = failure
     return result, info
 
 

@@ -319,9 +319,10 @@ def test_freed_plays_go_where_the_residual_needs_them():
     np.testing.assert_allclose(pj.unwrap(blind).hysteresis.thresholds, [10.0, 30.0, (30 + np.max(np.abs(v))) / 2])
 
 
-def test_an_interrupt_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch):
+def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch):
     """SIGINT while the dead plays are being placed (before the re-seeded fit's solver runs): the first fit is
-    written, result.json says the re-seeding was interrupted, and the exit status is 130."""
+    written, result.json says the re-seeding was interrupted, and the exit status is 130; an error there is
+    reported and the first fit written with its own verdict."""
     import json
     import os
     import signal
@@ -342,10 +343,18 @@ def test_an_interrupt_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch
         os.kill(os.getpid(), signal.SIGINT)  # the command's handler raises it here, as Ctrl-C would
         pytest.fail("the interrupt was not raised")
 
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("placement\nbroke")
+
+    argv = ["fit", str(tmp_path / "pi.toml"), str(tmp_path / "d.csv"), "--quiet", "--no-figures", "--out"]
     monkeypatch.setattr(ModelConfig, "reseeded", interrupted)
-    code = main(["fit", str(tmp_path / "pi.toml"), str(tmp_path / "d.csv"), "--out", str(tmp_path / "fit"),
-                 "--quiet", "--no-figures"])
-    assert code == 128 + signal.SIGINT
+    assert main(argv + [str(tmp_path / "fit")]) == 128 + signal.SIGINT
     result = json.loads((tmp_path / "fit" / "result.json").read_text())
     assert result["cli"]["reseeded"]["interrupted"] is True and result["cli"]["reseeded"]["rounds"] == []
     assert result["code"] != "interrupted" and (tmp_path / "fit" / "model.eqx").exists()
+    # an error in the optional refinement does not lose the finished fit either: reported, the fit's own verdict
+    monkeypatch.setattr(ModelConfig, "reseeded", broken)
+    assert main(argv + [str(tmp_path / "fit2")]) == (0 if result["success"] else 1)
+    again = json.loads((tmp_path / "fit2" / "result.json").read_text())
+    assert again["cli"]["reseeded"]["error"] == "RuntimeError: placement broke"
+    assert again["cost"] == result["cost"]
