@@ -363,11 +363,14 @@ RESEED_GRID = 64
 def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thresholds, weights, n: int,
                          vmax: float) -> list[float]:
     r"""Up to `n` thresholds for freed plays, chosen where the fit's residual needs them: the live plays
-    (`thresholds`, `weights`) and `RESEED_GRID` candidate plays of weight 0 on $(0, \max|v|)$ are linearised
-    together in their weights ($J^\top J$, $J^\top r$ of the fit's weighted residual, one forward-mode pass), and
-    candidates are chosen greedily, each the one whose weight, fitted jointly with the live and chosen ones by
-    linear least squares, lowers the cost most while coming out positive (orthogonal matching pursuit on the
-    normal equations). Fewer than `n` when fewer candidates would lower the cost."""
+    (`thresholds`, `weights`) and `RESEED_GRID` candidate plays of weight 0 on $(0, \max|v|)$ (less those within
+    `DUPLICATE_THRESHOLD` of a live one) are linearised together in their weights ($J^\top J$, $J^\top r$ of the
+    fit's weighted residual, formed as a fit's step forms them), and candidates are chosen greedily, each the one
+    whose weight, fitted jointly with the live and chosen ones by linear least squares, lowers the cost most while
+    the new plays' weights come out positive (orthogonal matching pursuit on the normal equations). Fewer than `n`
+    when fewer candidates would each lower the sum of squares by more than $25\hat\sigma^2$ (what a regressor of
+    pure noise would explain, at 5 sigma; $\hat\sigma^2$ from the part of the residual that no combination of the
+    live and candidate plays explains)."""
     from ._problem import Problem
 
     tol = DUPLICATE_THRESHOLD * vmax
@@ -384,7 +387,7 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
     problem = Problem(eqx.tree_at(get, plain, trial), dataset, predictor=fit_args.get("predictor"),
                       targets=fit_args.get("targets"), weights=fit_args.get("weights", "range"),
                       free=[f"{where}.weights"], scales="value")
-    _, g, h = (np.asarray(x, float) for x in problem.normal_equations(problem.u0))
+    res, g, h = (np.asarray(x, float) for x in problem.normal_equations(problem.u0))
     if not (np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
         return []
     d = np.sqrt(np.maximum(np.diag(h), TINY))  # unit columns: the choice does not depend on the weights' scales
@@ -393,17 +396,26 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
     position[order] = np.arange(order.size)
     live = list(position[: len(thresholds)])
     candidates = position[len(thresholds):]
+
+    def decrease(t):  # of the cost's Gauss–Newton model when the weights `t` are refitted, and their steps
+        step = -np.linalg.solve(h[np.ix_(t, t)] + 1e-10 * np.eye(len(t)), g[t])
+        return -float(g[t] @ step), step
+
     chosen: list[int] = []
+    # a play must explain more than a regressor of pure noise would: 25 sigma^2 (5 sigma), sigma^2 estimated from what
+    # no combination of the live and candidate plays explains
+    every = list(range(order.size))
+    unexplained = max(float(np.sum(np.square(res))) - decrease(every)[0], 0.0)
+    floor = 25.0 * unexplained / max(problem.num_residuals - order.size, 1)
     for _ in range(n):
-        best, best_decrease = None, 0.0
+        base = decrease(live + chosen)[0] if live + chosen else 0.0
+        best, best_gain = None, floor
         for j in candidates:
-            if j in chosen or any(abs(r[order][j] - r[order][c]) <= tol for c in chosen):
+            if j in chosen:
                 continue
-            t = live + chosen + [j]
-            step = -np.linalg.solve(h[np.ix_(t, t)] + 1e-10 * np.eye(len(t)), g[t])
-            decrease = -float(g[t] @ step)
-            if step[-1] > 0 and decrease > best_decrease:
-                best, best_decrease = j, decrease
+            total, step = decrease(live + chosen + [j])
+            if np.all(step[len(live):] > 0) and total - base > best_gain:  # the new plays' weights all grow
+                best, best_gain = j, total - base
         if best is None:
             break
         chosen.append(best)

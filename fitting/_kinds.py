@@ -629,9 +629,16 @@ def _reseed_plays(block, max_input: float, place=None):
     dead = reach < 1e-3 * max(total, TINY)
     # plays that share a threshold act as one (their weights add): the heaviest keeps the sum, the others are free
     w = w.copy()
+    tol = DUPLICATE_THRESHOLD * max_input
     live = np.flatnonzero(~dead)
     live = live[np.argsort(r[live], kind="stable")]
-    for group in np.split(live, np.flatnonzero(np.diff(r[live]) > DUPLICATE_THRESHOLD * max_input) + 1):
+    groups: list[list[int]] = []
+    for i in live:  # each group spans at most `tol` from its lowest threshold
+        if groups and r[i] - r[groups[-1][0]] <= tol:
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    for group in map(np.asarray, groups):
         if group.size > 1:
             keep = group[np.argmax(np.abs(w[group]))]
             w[keep] = np.sum(w[group])
@@ -639,7 +646,12 @@ def _reseed_plays(block, max_input: float, place=None):
     if not dead.any() or dead.all() or not max_input > 0:
         return None
     live_r, live_w, n_free = r[~dead], w[~dead], int(dead.sum())
-    proposed = [] if place is None else [float(x) for x in place(live_r, live_w, n_free)][:n_free]
+    proposed: list[float] = []
+    for x in [] if place is None else place(live_r, live_w, n_free):  # only thresholds where a new play can act
+        x = float(x)
+        if (len(proposed) < n_free and np.isfinite(x) and 0 < x < max_input
+                and all(abs(x - y) > tol for y in [*live_r, *proposed])):
+            proposed.append(x)
     new_r = list(live_r) + proposed
     for _ in range(n_free - len(proposed)):
         pts = np.r_[0.0, np.sort(new_r), max_input]

@@ -246,6 +246,11 @@ def _check_interrupted() -> None:
         raise Interrupted(_received[-1])
 
 
+def _pending_interrupt() -> bool:
+    """Whether a signal arrived that no one has handled yet (`_consume_interrupt`)."""
+    return len(_received) > _consumed
+
+
 def _consume_interrupt() -> None:
     """The interrupts so far were handled (the solver stopped and returned its last accepted point)."""
     global _consumed
@@ -571,8 +576,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     from ._solver import HARD_FAILURES
 
     rounds, interrupted, failure = [], False, None
-    while len(rounds) < RESEED_ROUNDS:
-        try:
+    try:
+        while len(rounds) < RESEED_ROUNDS:
             again = config.reseeded(result.model, dataset, free, fit_args)
             if again is None:
                 break
@@ -580,24 +585,27 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             _info(f"{moved} dead or coinciding hysteresis element(s) re-seeded where the residual needs them; "
                   "fitting again", quiet)
             second = fitting.fit(model, dataset, **fit_args)
-        except KeyboardInterrupt:  # while placing the plays or compiling the new problem: the fits so far stand
-            interrupted = True
-            break
-        except Exception as e:  # noqa: BLE001 - a finished fit is never lost to its optional refinement
-            failure = f"{type(e).__name__}: {' '.join(str(e).split())}"
-            _info(f"warning: re-seeding the dead plays failed ({failure}); the fit so far is kept")
-            break
-        interrupted = second.code == "interrupted"
-        kept = (second.code not in HARD_FAILURES or interrupted) and second.cost < result.cost
-        rounds.append({"elements": moved, "cost_before": float(result.cost), "cost_after": float(second.cost),
-                       "steps": int(second.steps), "kept": bool(kept)})
-        _info(f"re-seeded fit{' (interrupted)' if interrupted else ''}: cost {second.cost:.6e} against "
-              f"{result.cost:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
-        gain = result.cost - second.cost
-        if kept:
-            result = second
-        if not kept or interrupted or gain < RESEED_GAIN * rounds[-1]["cost_before"]:
-            break
+            stopped = second.code == "interrupted"
+            kept = (second.code not in HARD_FAILURES or stopped) and second.cost < result.cost
+            previous = result
+            if kept:
+                result = second
+            rounds.append({"elements": moved, "cost_before": float(previous.cost), "cost_after": float(second.cost),
+                           "steps": int(second.steps), "kept": bool(kept)})
+            gain = previous.cost - second.cost
+            _info(f"re-seeded fit{' (interrupted)' if stopped else ''}: cost {second.cost:.6e} against "
+                  f"{rounds[-1]['cost_before']:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
+            if stopped:
+                interrupted = True
+            if stopped or not kept or gain < RESEED_GAIN * rounds[-1]["cost_before"] or _pending_interrupt():
+                break
+    except KeyboardInterrupt:  # while placing the plays or compiling the new problem: the fits so far stand
+        interrupted = True
+    except Exception as e:  # noqa: BLE001 - a finished fit is never lost to its optional refinement
+        failure = f"{type(e).__name__}: {' '.join(str(e).split())}"
+        _info(f"warning: re-seeding the dead plays failed ({failure}); the fit so far is kept")
+    # an interrupt that was swallowed on its way (see `_check_interrupted`) or turned into another error
+    interrupted = interrupted or _pending_interrupt()
     if not rounds and not interrupted and failure is None:
         return result, None
     before = rounds[0]["cost_before"] if rounds else float(result.cost)

@@ -298,25 +298,43 @@ def test_coinciding_plays_count_as_one_and_free_the_others():
     np.testing.assert_allclose(partly.thresholds, [1.0, 3.0, 5.0, 9.0])
     assert _reseed_plays(pj.PrandtlIshlinskii(jnp.array([1.0, 0.5]), jnp.array([1.0, 5.0])), 10.0,
                          lambda r, w, n: pytest.fail("nothing is freed")) is None
+    # proposals where a play cannot act (on a live threshold, outside (0, max|v|), not finite, twice) are dropped
+    odd = _reseed_plays(two_free, 10.0, lambda r, w, n: [5.0, 12.0, np.nan, 0.0, 7.0, 7.0])
+    np.testing.assert_allclose(odd.thresholds, [1.0, 3.0, 5.0, 7.0])
+    # a group of coinciding plays spans at most the tolerance from its lowest threshold (no chaining)
+    chain = pj.PrandtlIshlinskii(jnp.array([1.0, 0.3, 0.2, 0.4]), jnp.array([1.0, 5.0, 5.0009, 5.0018]))
+    np.testing.assert_allclose(_reseed_plays(chain, 10.0).thresholds, [1.0, 5.0, 5.0018, 7.5009])
+    np.testing.assert_allclose(_reseed_plays(chain, 10.0).weights[:3], [1.0, 0.5, 0.4])
 
 
 def test_freed_plays_go_where_the_residual_needs_them():
-    """A plant with plays at 10, 30 and 80 V fitted with the third play dead: the residual is that play's output,
-    and the placement finds it (the widest gap would put it at 62.6 V)."""
+    """A plant with plays at 10, 20, 30 and 80 V fitted with the 20 V play dead: the residual is that play's output,
+    and the placement finds it between the live ones (the widest gap would put it at 55 V)."""
     t = np.arange(3000) / 1000.0
     v = 100 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-0.4 * t)
-    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 0.25]), jnp.array([10.0, 30.0, 80.0]), w0=0.5)
+    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.25]), jnp.array([10.0, 20.0, 30.0, 80.0]), w0=0.5)
     ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(truth(jnp.asarray(v))))])
-    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n[state]\noffset = false\n', "pi.toml")
-    fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 1e-12]), jnp.array([10.0, 30.0, 99.9]), w0=0.5))
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 4\n[state]\noffset = false\n', "pi.toml")
+    fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 0.25, 1e-12]), jnp.array([10.0, 30.0, 80.0, 99.9]),
+                                              w0=0.5))
     free = cfg.fit_free(["displacement"])
     model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
     assert moved == 1
     r = np.asarray(pj.unwrap(model).hysteresis.thresholds)
-    np.testing.assert_allclose(r[:2], [10.0, 30.0])
-    assert abs(r[2] - 80.0) < 100 / 64  # within one candidate spacing of the missing play
+    np.testing.assert_allclose(r[[0, 2, 3]], [10.0, 30.0, 80.0])
+    assert abs(r[1] - 20.0) < np.max(np.abs(v)) / 64  # within one candidate spacing of the missing play
     blind, _ = cfg.reseeded(cfg._constrain(fitted), ds, free)
-    np.testing.assert_allclose(pj.unwrap(blind).hysteresis.thresholds, [10.0, 30.0, (30 + np.max(np.abs(v))) / 2])
+    np.testing.assert_allclose(pj.unwrap(blind).hysteresis.thresholds, [10.0, 30.0, 55.0, 80.0])
+    # nothing to gain beyond the noise: the truth itself with a freed (dead) fifth play, on noisy data; no candidate
+    # explains more than noise would, so the play goes to the widest gap
+    noisy = fitting.Dataset([fitting.Experiment.from_arrays(
+        t=t, v_in=v, displacement=np.asarray(truth(jnp.asarray(v))) + 0.05 * np.random.default_rng(3).standard_normal(
+            t.size))])
+    exact = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.25, 1e-12]),
+                                             jnp.array([10.0, 20.0, 30.0, 80.0, 99.9]), w0=0.5))
+    cfg5 = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 5\n[state]\noffset = false\n', "pi.toml")
+    same, _ = cfg5.reseeded(cfg5._constrain(exact), noisy, free, {"predictor": cfg5.predictor(), "targets": None})
+    np.testing.assert_allclose(pj.unwrap(same).hysteresis.thresholds, [10.0, 20.0, 30.0, 55.0, 80.0])
 
 
 def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch):
@@ -339,7 +357,8 @@ def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, mo
                comments="")
     (tmp_path / "pi.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 8\n')
 
-    def interrupted(self, *args, **kwargs):
+    def interrupted(self, model, dataset, free, fit_args=None):
+        assert fit_args["predictor"] is not None  # the command line places freed plays by the residual
         os.kill(os.getpid(), signal.SIGINT)  # the command's handler raises it here, as Ctrl-C would
         pytest.fail("the interrupt was not raised")
 
