@@ -356,25 +356,30 @@ class ModelConfig:
         return model
 
 
-# candidate thresholds scored when a freed play is placed where the residual needs it
-RESEED_GRID = 64
+# candidate thresholds scored when a freed play is placed where the residual needs it: at most RESEED_GRID, fewer on
+# long records so that the plays' outputs (live and candidates, 8 bytes per sample each) stay within RESEED_MEMORY
+# (measured on one 1e6-sample record: 70 plays raised the peak by 1.2 GB, 33 by 0.32 GB; with the 16 this gives,
+# the whole `piezojax fit` peaked at 1.80 GB against 1.77 GB placing by the widest gaps)
+RESEED_GRID, RESEED_MEMORY = 64, 2**27
 
 
 def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thresholds, weights, n: int,
                          vmax: float) -> list[float]:
     r"""Up to `n` thresholds for freed plays, chosen where the fit's residual needs them: the live plays
-    (`thresholds`, `weights`) and `RESEED_GRID` candidate plays of weight 0 on $(0, \max|v|)$ (less those within
-    `DUPLICATE_THRESHOLD` of a live one) are linearised together in their weights ($J^\top J$, $J^\top r$ of the
-    fit's weighted residual, formed as a fit's step forms them), and candidates are chosen greedily, each the one
-    whose weight, fitted jointly with the live and chosen ones by linear least squares, lowers the cost most while
-    the new plays' weights come out positive (orthogonal matching pursuit on the normal equations). Fewer than `n`
-    when fewer candidates would each lower the sum of squares by more than $25\hat\sigma^2$ (what a regressor of
-    pure noise would explain, at 5 sigma; $\hat\sigma^2$ from the part of the residual that no combination of the
-    live and candidate plays explains)."""
+    (`thresholds`, `weights`) and `RESEED_GRID` candidate plays of weight 0 evenly on $(0, \max|v|)$ (fewer on long
+    records, see `RESEED_MEMORY`; less those within `DUPLICATE_THRESHOLD` of a live one) are linearised together in
+    their weights ($J^\top J$, $J^\top r$ of the fit's weighted residual, formed as a fit's step forms them), and
+    candidates are chosen greedily, each the one whose weight, fitted jointly with the live and chosen ones by
+    linear least squares, lowers the cost most while the new plays' weights come out positive (orthogonal matching
+    pursuit on the normal equations). Fewer than `n` when fewer candidates would each lower the sum of squares by
+    more than $25\hat\sigma^2$ (what a regressor of pure noise would explain, at 5 sigma; $\hat\sigma^2$ from the
+    part of the residual that no combination of the live and candidate plays explains)."""
     from ._problem import Problem
 
     tol = DUPLICATE_THRESHOLD * vmax
-    grid = (np.arange(RESEED_GRID) + 0.5) / RESEED_GRID * vmax
+    samples = sum(e.n for e in dataset)
+    size = int(min(RESEED_GRID, max(8, RESEED_MEMORY // (8 * samples) - len(thresholds))))
+    grid = (np.arange(size) + 0.5) / size * vmax
     grid = grid[np.min(np.abs(grid[:, None] - np.asarray(thresholds)[None, :]), axis=1) > tol]
     if grid.size == 0:
         return []
