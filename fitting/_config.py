@@ -386,9 +386,10 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
     r = np.r_[np.asarray(thresholds, float), grid]
     w = np.r_[np.asarray(weights, float), np.zeros(grid.size)]
     order = np.argsort(r)
+    r_sorted = r[order]
     block = get(plain)
     trial = eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
-                        (jnp.asarray(w[order], block.weights.dtype), jnp.asarray(r[order], block.thresholds.dtype)))
+                        (jnp.asarray(w[order], block.weights.dtype), jnp.asarray(r_sorted, block.thresholds.dtype)))
     problem = Problem(eqx.tree_at(get, plain, trial), dataset, predictor=fit_args.get("predictor"),
                       targets=fit_args.get("targets"), weights=fit_args.get("weights", "range"),
                       free=[f"{where}.weights"], scales="value")
@@ -413,7 +414,7 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
     unexplained = max(float(np.sum(np.square(res))) - decrease(every)[0], 0.0)
     floor = 25.0 * unexplained / max(problem.num_residuals - order.size, 1)
     for _ in range(n):
-        base = decrease(live + chosen)[0] if live + chosen else 0.0
+        base = decrease(live + chosen)[0]  # `live` is never empty (`_reseed_plays`)
         best, best_gain = None, floor
         for j in candidates:
             if j in chosen:
@@ -424,7 +425,7 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
         if best is None:
             break
         chosen.append(best)
-    return [float(r[order][j]) for j in chosen]
+    return [float(r_sorted[j]) for j in chosen]
 
 
 def _getter(path: list[str]):

@@ -592,12 +592,10 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
                 result = second
             rounds.append({"elements": moved, "cost_before": float(previous.cost), "cost_after": float(second.cost),
                            "steps": int(second.steps), "kept": bool(kept)})
-            gain = previous.cost - second.cost
             _info(f"re-seeded fit{' (interrupted)' if stopped else ''}: cost {second.cost:.6e} against "
-                  f"{rounds[-1]['cost_before']:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
-            if stopped:
-                interrupted = True
-            if stopped or not kept or gain < RESEED_GAIN * rounds[-1]["cost_before"] or _pending_interrupt():
+                  f"{previous.cost:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
+            interrupted = stopped
+            if stopped or not kept or previous.cost - second.cost < RESEED_GAIN * previous.cost:
                 break
     except KeyboardInterrupt:  # while placing the plays or compiling the new problem: the fits so far stand
         interrupted = True
