@@ -24,6 +24,7 @@ if __name__ == "__main__" or sys.argv[0].rsplit("/", 1)[-1] == "piezojax":
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import threading
 import warnings
@@ -568,7 +569,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     needs them), each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered
     the cost by more than `RESEED_GAIN` and left elements dead again (plays pulled onto one kink of the data's
     reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
-    re-seeded fit's last accepted point is kept if its cost is lower. Returns the result kept and, for
+    re-seeded fit's last accepted point is kept if its cost is lower, and the result returned has code
+    `"interrupted"` (its reason names the verdict of the fit kept). Returns the result kept and, for
     `result.json`, what was done (`None` when nothing was dead; `"interrupted": True` when an interrupt ended it;
     `"error"` when a round raised: the fit so far is kept and the error reported as a warning)."""
     import fitting
@@ -611,6 +613,9 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             "kept": any(r["kept"] for r in rounds), "rounds": rounds}
     if interrupted:
         info["interrupted"] = True
+        if result.code != "interrupted":  # the run was interrupted, whatever the verdict of the fit kept
+            result = dataclasses.replace(result, success=False, code="interrupted", reason=(
+                f"interrupted while re-seeding dead plays; the best fit so far ({result.code}: {result.reason})"))
     if failure is not None:
         info["error"] = failure
     return result, info
@@ -678,8 +683,7 @@ def _cmd_fit(args) -> int:
         reseeded = None
         if result.code != "interrupted":
             result, reseeded = _reseed(config, result, dataset, free, fit_args, quiet)
-        interrupted = result.code == "interrupted" or bool(reseeded and reseeded.get("interrupted"))
-        if interrupted:
+        if result.code == "interrupted":
             _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
         extra = {
             "cli": {
@@ -708,10 +712,6 @@ def _cmd_fit(args) -> int:
     _out(result.report())
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
-        return _interrupt_status()
-    if interrupted:
-        _info(f"interrupted while re-seeding dead plays: the best fit so far is saved in {out} (result.json: "
-              "cli.reseeded.interrupted)")
         return _interrupt_status()
     if not result.success:
         _info(f"the fit did not converge ({result.reason}); results written to {out}")
