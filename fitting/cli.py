@@ -95,8 +95,8 @@ examples:
 DIR receives result.json (metrics per experiment and channel, parameters with standard errors, convergence),
 model.eqx (the fitted parameters), config.toml (the configuration, to rebuild the model), report.txt and PNG
 figures. DIR appears complete or not at all.
---overwrite replaces only a folder written by an earlier `piezojax fit` (it holds a .piezojax marker), never the
-working directory, a folder holding an input or CONFIG, or anything else.
+--overwrite replaces only a folder written by an earlier `piezojax fit` (it holds a .piezojax marker) that holds
+nothing else, never the working directory, a folder holding an input or CONFIG, or anything else.
 exit status: 0 converged, 1 not converged (outputs written), 2 bad input, 3 internal error, 130 interrupted
 (143 terminated).
 """

@@ -106,16 +106,41 @@ def _protected(p: Path) -> str | None:
     return None
 
 
-def read_marker(path: str | os.PathLike) -> str | None:
-    """The kind of output recorded in the marker of the folder `path` (`"fit"`, `"predict"`, ...), or None if it has
-    no readable marker (not written by piezojax, or by a version before markers)."""
+def _read_marker_data(path: str | os.PathLike) -> dict:
     f = Path(os.fspath(path)) / MARKER
     try:
         data = json.loads(f.read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return None
-    kind = data.get("kind") if isinstance(data, dict) else None
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def read_marker(path: str | os.PathLike) -> str | None:
+    """The kind of output recorded in the marker of the folder `path` (`"fit"`, `"predict"`, ...), or None if it has
+    no readable marker (not written by piezojax, or by a version before markers)."""
+    kind = _read_marker_data(path).get("kind")
     return kind if isinstance(kind, str) else None
+
+
+def _folder_entries(p: Path) -> list[str]:
+    """Every file and folder below `p` (not following links), as sorted POSIX paths relative to `p`; folders end
+    with '/'. The marker itself is left out."""
+    out = []
+    for root, dirs, files in os.walk(p):
+        rel = Path(root).relative_to(p)
+        out += [(rel / d).as_posix() + "/" for d in dirs]
+        out += [(rel / f).as_posix() for f in files]
+    return sorted(e for e in out if e != MARKER)
+
+
+def _foreign_entries(p: Path) -> list[str] | None:
+    """What the folder `p` holds that its marker does not list as written with it (files a user added after the
+    run), or None for a marker without a list (written by a version before the lists)."""
+    written = _read_marker_data(p).get("files")
+    if not isinstance(written, list):
+        return None
+    written = set(written)
+    return [e for e in _folder_entries(p) if e not in written]
 
 
 def _check_name_length(p: Path) -> None:
@@ -339,8 +364,10 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
     temporary directory is removed and `path` is left as it was.
 
     Never replaced, whatever `overwrite` says: the working directory, a directory containing it, and the home
-    directory. With `kind`, the new folder gets a marker file (`MARKER`) recording it, and `overwrite` replaces only
-    a folder whose marker records the same `kind` (a previous output of the same command), never anything else.
+    directory. With `kind`, the new folder gets a marker file (`MARKER`) recording it and the files written, and
+    `overwrite` replaces only a folder whose marker records the same `kind` (a previous output of the same command)
+    and which holds nothing else than those files (a file a user put there afterwards is never deleted: the run is
+    refused, naming it).
     Temporaries left by killed runs next to `path` are removed on entry; if a live process is writing `path`, entry
     fails.
 
@@ -371,7 +398,8 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
         if kind is not None:
             from piezojax import __version__
 
-            save_json(tmp / MARKER, {"written_by": "piezojax", "kind": kind, "version": __version__})
+            save_json(tmp / MARKER, {"written_by": "piezojax", "kind": kind, "version": __version__,
+                                     "files": _folder_entries(tmp)})
         if p.exists() and not p.is_dir():
             raise PiezojaxValueError(
                 f"cannot create directory {str(p)!r}: a file of that name was created by another program while this "
@@ -424,17 +452,28 @@ def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opt
         return
     if not p.is_dir():
         raise PiezojaxValueError(f"output folder {str(p)!r} is a file")
+    if kind is None:
+        if not overwrite:
+            raise PiezojaxValueError(f"output folder {str(p)!r} already exists; pass {option} to replace it")
+        return
+    found = read_marker(p)
+    if found != kind:
+        held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
+        raise PiezojaxValueError(
+            f"refusing to replace {str(p)!r}{'' if overwrite else ', which already exists'}: it {held}, and {option} "
+            f"replaces only the output of an earlier `piezojax {kind}` (a folder with the marker file {MARKER}); "
+            "remove it yourself or choose another output folder"
+        )
+    foreign = _foreign_entries(p)
+    if foreign:
+        shown = ", ".join(repr(e) for e in foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise PiezojaxValueError(
+            f"refusing to replace {str(p)!r}{'' if overwrite else ', which already exists'}: it holds what "
+            f"`piezojax {kind}` did not write there ({shown}), which {option} would delete; move that out of the "
+            "folder, or choose another output folder"
+        )
     if not overwrite:
         raise PiezojaxValueError(f"output folder {str(p)!r} already exists; pass {option} to replace it")
-    if kind is not None:
-        found = read_marker(p)
-        if found != kind:
-            held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
-            raise PiezojaxValueError(
-                f"refusing to replace {str(p)!r}: it {held}, and {option} replaces only the output of an earlier "
-                f"`piezojax {kind}` (a folder with the marker file {MARKER}); remove it yourself or choose another "
-                "output folder"
-            )
 
 
 def to_jsonable(obj: Any, _where: str = "obj") -> Any:

@@ -262,7 +262,7 @@ def test_bad_input_is_one_line_and_writes_nothing(work, capsys, case):
                "output exists": d / "existing_out"}[case]
         (d / "existing_out").mkdir(exist_ok=True)
         expected = {"unwritable output": "is not a directory", "output parent missing": "does not exist",
-                    "output exists": "already exists; pass --overwrite"}[case]
+                    "output exists": "which already exists: it has no piezojax marker"}[case]
         argv = ["fit", str(d / "pi_creep.toml"), files[0], "--out", str(out)]
     capsys.readouterr()
     rc = main(argv)

@@ -297,7 +297,7 @@ CASES = {
                              ["refusing", "holds the input", "inner.csv"]),
     "--out holds the config": (_fit_opts("--overwrite", cfg="pi.toml", out="."), 2, ["refusing", "pi.toml"]),
     "--out is the data file": (_fit_opts("--overwrite", out="ok.csv"), 2, ["refusing", "is the input", "ok.csv"]),
-    "--out exists": (_fit_opts(out="existing"), 2, ["'", "existing", "already exists; pass --overwrite"]),
+    "--out exists": (_fit_opts(out="existing"), 2, ["'", "existing", "already exists", "no piezojax marker"]),
     "--overwrite an unmarked folder": (_fit_opts("--overwrite", out="existing"), 2,
                                        ["refusing to replace", "existing", "no piezojax marker"]),
     "--overwrite a predict folder": (_fit_opts("--overwrite", out="pred"), 2,
@@ -483,6 +483,34 @@ def test_fitresult_save_overwrites_only_a_fit_folder(bench, tmp_path):
     with pytest.raises(pj.PiezojaxValueError, match="working directory"):
         with fitting.files.atomic_directory(Path.cwd(), overwrite=True):
             pass
+
+
+def test_overwrite_never_deletes_what_a_user_added_to_an_output_folder(tmp_path):
+    out = tmp_path / "fit"
+    with fitting.files.atomic_directory(out, kind="fit") as d:
+        (d / "result.json").write_text("{}")
+        (d / "figures").mkdir()
+        (d / "figures" / "fit.png").write_bytes(b"png")
+    marker = json.loads((out / fitting.files.MARKER).read_text())
+    assert marker["files"] == ["figures/", "figures/fit.png", "result.json"]
+    (out / "my_notes.txt").write_text("keep me\n")
+    (out / "figures" / "mine").mkdir()
+    for overwrite in (False, True):  # refused before any work, naming what would be lost
+        with pytest.raises(pj.PiezojaxValueError, match=r"refusing to replace .*'figures/mine/', 'my_notes.txt'"):
+            with fitting.files.atomic_directory(out, overwrite=overwrite, kind="fit"):
+                raise AssertionError("must be refused on entry")
+    assert (out / "my_notes.txt").read_text() == "keep me\n" and (out / "result.json").exists()
+    (out / "my_notes.txt").unlink()
+    (out / "figures" / "mine").rmdir()
+    with fitting.files.atomic_directory(out, overwrite=True, kind="fit") as d:
+        (d / "result.json").write_text('{"new": 1}')
+    assert json.loads((out / "result.json").read_text()) == {"new": 1} and not (out / "figures").exists()
+    # a marker written before the list of files: replaced as before
+    (out / fitting.files.MARKER).write_text(json.dumps({"written_by": "piezojax", "kind": "fit"}))
+    (out / "extra.txt").write_text("x")
+    with fitting.files.atomic_directory(out, overwrite=True, kind="fit") as d:
+        (d / "result.json").write_text("{}")
+    assert not (out / "extra.txt").exists()
 
 
 def test_leftovers_of_killed_runs_are_removed_and_live_writers_refused(tmp_path):
