@@ -397,8 +397,10 @@ class Experiment:
         i0 = 0 if start is None else int(np.searchsorted(self.t, float(start) - tol, side="left"))
         i1 = self.n if stop is None else int(np.searchsorted(self.t, float(stop) - tol, side="left"))
         if i1 - i0 < 2:
+            window = (f"{'its start' if start is None else f't = {float(start):.6g} s'} to "
+                      f"{'its end' if stop is None else f't = {float(stop):.6g} s'}")
             raise PiezojaxValueError(
-                f"{self._label()}: slice({start}, {stop}) keeps {max(i1 - i0, 0)} sample(s) of the record "
+                f"{self._label()}: {window} keeps {max(i1 - i0, 0)} sample(s) of the record "
                 f"[{self.t[0]:.6g}, {self.t[-1]:.6g}] s; at least 2 are needed"
             )
         if name is None:
@@ -462,6 +464,8 @@ def _columns_to_experiment(
     label = f"file {src!r}"
     data = {k: v for k, v in data.items() if k != FILE_MARKER}
     renames = parse_columns(columns)
+    # a measured channel the file lacks is just absent (a file to predict from needs only t and v_in)
+    renames = {k: v for k, v in renames.items() if k in data or v not in CHANNELS}
     absent = [k for k in renames if k not in data]
     if absent:
         raise PiezojaxValueError(f"{label}: `columns` renames {absent}, which the file does not have; found "
@@ -488,8 +492,9 @@ def _columns_to_experiment(
     extra = [k for k in data if k not in COLUMNS]
     if extra and not ignore_extra:
         raise PiezojaxValueError(
-            f"{label}: unknown column(s) {extra}; allowed columns are {list(COLUMNS)} (pass ignore_extra=True to "
-            "skip them)"
+            f"{label}: unknown column(s) {extra}; allowed columns are {list(COLUMNS)} (rename them with `columns`, "
+            "or skip them with `ignore_extra`: --columns / --ignore-extra on the command line, columns = {...} / "
+            "ignore_extra = true in [data])"
         )
     scales = parse_units(units)
     data = dict(data)
@@ -616,7 +621,12 @@ def _read_hdf5(path: Path, group: str | None) -> dict[str, np.ndarray]:
 
     with h5py.File(path, "r") as f:
         if group is None:
-            return _read_hdf5_group(f, path)
+            out = _read_hdf5_group(f, path)
+            groups = sorted(k for k, v in f.items() if isinstance(v, h5py.Group) and not k.startswith("#"))
+            if not out and groups:
+                raise PiezojaxValueError(f"file {str(path)!r}: no datasets at the root; name the group holding the "
+                                         f"columns (`group`, --group): groups at the root: {groups}")
+            return out
         if group not in f or not isinstance(f[group], h5py.Group):
             groups = sorted(k for k, v in f.items() if isinstance(v, h5py.Group))
             raise PiezojaxValueError(f"file {str(path)!r}: no group {group!r}; groups at the root: {groups}")
@@ -640,7 +650,12 @@ def _read_mat(path: Path, group: str | None) -> dict[str, np.ndarray]:
             )
         s = s.reshape(-1)[0]
         return {k: _squeeze_vector(np.asarray(s[k])) for k in s.dtype.names}
-    return {k: _squeeze_vector(np.asarray(v)) for k, v in raw.items() if not k.startswith("__")}
+    variables = {k: v for k, v in raw.items() if not k.startswith("__")}
+    structs = sorted(k for k, v in variables.items() if v.dtype.names and v.size == 1)
+    if structs and len(structs) == len(variables):
+        raise PiezojaxValueError(f"file {str(path)!r}: holds only struct variables; name the one holding the columns "
+                                 f"(`group`, --group): {structs}")
+    return {k: _squeeze_vector(np.asarray(v)) for k, v in variables.items()}
 
 
 def _resolve_path(path: str | os.PathLike) -> Path:
@@ -686,7 +701,9 @@ def load_experiment(
       (a displacement spanning centimetres, kilovolt signals, …) give a `UnitWarning`.
     - `columns`: renames file columns, `{file column: column}` (e.g. `{"u": "v_in", "y": "displacement"}`); for a
       CSV file without a header row, the keys are the 1-based positions of the fields to read
-      (`{"2": "t", "3": "displacement", "4": "v_in"}`; other fields are skipped).
+      (`{"2": "t", "3": "displacement", "4": "v_in"}`; other fields are skipped). A renamed measured channel the
+      file does not have is left out (one mapping reads both the training files and the input-only files to predict
+      from); a renamed `t` or `v_in` the file does not have is an error.
     - `sample_rate`: for a file without a `t` column, the sampling rate [Hz]; $t_k = k / f_s$.
 
     **Returns:**
@@ -923,7 +940,9 @@ class Dataset(Sequence):
         **Arguments:**
 
         - `paths`: data files.
-        - `group`, `ignore_extra`, `units`, `columns`, `sample_rate`: as in `load_experiment`.
+        - `ignore_extra`, `units`, `columns`, `sample_rate`: as in `load_experiment`.
+        - `group`: as in `load_experiment`, for the HDF5 and `.mat` files among `paths` (CSV and `.npz` files have
+          no groups: they are read whole).
 
         **Returns:**
 
@@ -938,12 +957,18 @@ class Dataset(Sequence):
         for p in ps:
             with contextlib.suppress(OSError, RuntimeError):
                 real = p.resolve()
-                if real in seen and seen[real] != p and p.exists():
-                    raise PiezojaxValueError(f"the same data file is given twice: {str(seen[real])!r} and {str(p)!r}")
+                if real in seen and p.exists():
+                    also = "" if seen[real] == p else f" (also as {str(p)!r})"
+                    raise PiezojaxValueError(f"the data file {str(seen[real])!r} is given twice{also}")
                 seen.setdefault(real, p)
         names = _unique_names(ps)
-        return cls(load_experiment(p, name=n, group=group, ignore_extra=ignore_extra, units=units, columns=columns,
-                                   sample_rate=sample_rate) for p, n in zip(ps, names))
+        grouped = [p.suffix.lower() not in (".csv", ".npz") for p in ps]
+        if group is not None and not any(grouped):
+            files = ", ".join(repr(str(p)) for p in ps[:3]) + (", …" if len(ps) > 3 else "")
+            raise PiezojaxValueError(f"`group` ({group!r}) applies to HDF5 and .mat files, and none of the data files "
+                                     f"is one ({files})")
+        return cls(load_experiment(p, name=n, group=group if g else None, ignore_extra=ignore_extra, units=units,
+                                   columns=columns, sample_rate=sample_rate) for p, n, g in zip(ps, names, grouped))
 
     def __len__(self) -> int:
         return len(self._experiments)

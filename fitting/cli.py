@@ -145,9 +145,10 @@ def _data_options(parser, source: str) -> None:
                         f"prefixes k, m, u, n, p); overrides [data] units of {source}")
     parser.add_argument("--columns", metavar="FILECOL=COL", action="append",
                         help="rename file columns, FILECOL=COL[,...] (e.g. u=v_in,y=displacement); for a CSV file "
-                        f"without a header, FILECOL is a 1-based position (2=t,3=displacement,4=v_in); overrides "
-                        f"[data] columns of {source}")
-    parser.add_argument("--group", metavar="NAME", help="HDF5 group (or .mat struct) holding the columns")
+                        f"without a header, FILECOL is a 1-based position (2=t,3=displacement,4=v_in); replaces "
+                        f"[data] columns of {source} ('' for no renaming)")
+    parser.add_argument("--group", metavar="NAME", help="HDF5 group (or .mat struct) holding the columns, for the "
+                        f"HDF5 and .mat files; overrides [data] group of {source} ('' for the root)")
     parser.add_argument("--sample-rate", metavar="HZ", type=float, help="sampling rate of files without a t column")
     parser.add_argument("--ignore-extra", action="store_true", help="skip columns that are not t, v_in or a channel")
 
@@ -393,22 +394,30 @@ def _pairs(items: list[str] | None, option: str, example: str) -> dict[str, str]
     return out
 
 
-def _data_settings(args, base: dict) -> dict:
-    """How to read the data files: `base` (CONFIG's `[data]`, or the fit's for `predict`) with the command line's
-    options on top; checked here, so that a bad option is named before any file is read."""
+def _data_settings(args, base: dict, paths) -> dict:
+    """How to read the data files `paths`: `base` (CONFIG's `[data]`, or the fit's for `predict`) with the command
+    line's options on top; checked here, so that a bad option is named before any file is read."""
     from ._data import parse_columns, parse_units
 
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
     units = _pairs(args.units, "--units", "COLUMN=UNIT (e.g. displacement=um)")
-    columns = _pairs(args.columns, "--columns", "FILECOLUMN=COLUMN (e.g. u=v_in)")
+    # `--columns ''`: no renaming; any other --columns replaces the whole mapping (its keys are the file's names)
+    clear = args.columns is not None and not any(c.strip() for c in args.columns)
+    columns = {} if clear else _pairs(args.columns, "--columns", "FILECOLUMN=COLUMN (e.g. u=v_in)")
     parse_units(units, "--units")
     parse_columns(columns, "--columns")
     if units:
         out["units"] = {**out.get("units", {}), **units}
-    if columns:
-        out["columns"] = {**out.get("columns", {}), **columns}
+    if columns or clear:
+        out["columns"] = columns
+    ungrouped = all(Path(p).suffix.lower() in (".csv", ".npz") for p in paths)
     if args.group is not None:
-        out["group"] = args.group
+        out["group"] = args.group.strip() or None  # `--group ''`: the root
+        if out["group"] is not None and ungrouped:
+            raise _error(f"--group {args.group}: a group applies to HDF5 and .mat files, and none of the data files "
+                         f"is one ({', '.join(repr(str(p)) for p in paths[:3])}{', …' if len(paths) > 3 else ''})")
+    elif ungrouped:
+        out.pop("group", None)  # the group of CONFIG or of the fit concerns HDF5 and .mat files only
     if args.sample_rate is not None:
         if not (args.sample_rate > 0 and args.sample_rate < float("inf")):
             raise _error(f"--sample-rate must be a positive number of Hz, got {args.sample_rate}")
@@ -495,7 +504,12 @@ def _windowed(dataset, window: str):
         bounds = None
     if not sep or bounds is None or any(b is not None and b != b for b in bounds):
         raise _error(f"--window: expected START:STOP in seconds (either may be empty, e.g. :7), got {window!r}")
-    return fitting.Dataset(e.slice(*bounds, name=e.name) for e in dataset)
+    from piezojax._checks import PiezojaxValueError
+
+    try:
+        return fitting.Dataset([e.slice(*bounds, name=e.name) for e in dataset])
+    except PiezojaxValueError as e:
+        raise _error(f"--window {window}: {e}") from e
 
 
 def _check_fit_data(dataset, targets) -> None:
@@ -506,6 +520,12 @@ def _check_fit_data(dataset, targets) -> None:
         raise _error(f"{e._label()} has {e.n} samples; `piezojax fit` needs at least {MIN_FIT_SAMPLES} per record")
     import numpy as np
 
+    useless = [e for e in dataset if not any(e.has(c) for c in targets)]
+    if useless:
+        e = useless[0]
+        raise _error(f"{e._label()} has none of the fitted channels ({', '.join(targets)}): it would add nothing to "
+                     f"the fit; its columns are {', '.join(('t', 'v_in') + e.channel_names)} (rename a file's column "
+                     "with --columns or [data] columns; predict from input-only files with `piezojax predict`)")
     for c in targets:
         having = [e for e in dataset if e.has(c)]
         if having and all(np.ptp(e[c]) == 0 for e in having):
@@ -639,7 +659,7 @@ def _cmd_fit(args) -> int:
         raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
     out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
     config = load_config(args.config)
-    settings = _data_settings(args, config.data)
+    settings = _data_settings(args, config.data, args.data)
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
         if args.window is not None:
@@ -757,7 +777,7 @@ def _cmd_predict(args) -> int:
     out = _check_output(args.out, args.overwrite, "predict", inputs=[*args.data, *(args.history or [])],
                         fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
-    settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
+    settings = _data_settings(args, _fit_data_settings(args.model_dir, config), [*args.data, *(args.history or [])])
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings)
         results, metrics = [], {}
@@ -812,7 +832,7 @@ def _cmd_simulate(args) -> int:
 
     out = _check_output(args.out, args.overwrite, "simulate", inputs=[args.input, args.config])
     config = load_config(args.config)
-    settings = _data_settings(args, config.data)
+    settings = _data_settings(args, config.data, [args.input])
     model = pj.unwrap(config.build(None, require_values=True))
     dataset, _ = _load_data([args.input], settings)
     exp = dataset[0]

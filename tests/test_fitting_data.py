@@ -190,7 +190,7 @@ def test_hdf5_group(tmp_path, rng):
     _assert_same(e, load_experiment(p, group="run3"))
     with pytest.raises(PiezojaxValueError, match=r"g\.h5.*no group 'run4'.*\['run3'\]"):
         load_experiment(p, group="run4")
-    with pytest.raises(PiezojaxValueError, match=r"g\.h5.*required column\(s\) \['t', 'v_in'\] missing"):
+    with pytest.raises(PiezojaxValueError, match=r"g\.h5.*no datasets at the root.*groups at the root: \['run3'\]"):
         load_experiment(p)  # root has only the group
 
 
@@ -440,8 +440,16 @@ def test_dataset_from_files(tmp_path, rng):
     save_experiment(e1, tmp_path / "other.npz")
     ds2 = Dataset.from_files([tmp_path / "other.h5", tmp_path / "other.npz"])
     assert ds2.names == ("other.h5", "other.npz")
-    with pytest.raises(PiezojaxValueError, match="duplicate experiment name"):
+    with pytest.raises(PiezojaxValueError, match=r"other.h5' is given twice$"):
         Dataset.from_files([tmp_path / "other.h5", tmp_path / "other.h5"])
+    # a group concerns the HDF5 and .mat files only; with none among them it is a mistake
+    save_experiment(e1, tmp_path / "grouped.h5", group="run1")
+    ds3 = Dataset.from_files([tmp_path / "grouped.h5", tmp_path / "other.npz"], group="run1")
+    _assert_same(e1, ds3["grouped"])
+    with pytest.raises(PiezojaxValueError, match=r"applies to HDF5 and .mat files.*other.npz"):
+        Dataset.from_files([tmp_path / "other.npz"], group="run1")
+    with pytest.raises(PiezojaxValueError, match=r"grouped.h5.*no datasets at the root.*\['run1'\]"):
+        Dataset.from_files([tmp_path / "grouped.h5"])
 
 
 # ---------------------------------------------------------------------------------------------------------- atomic io

@@ -56,6 +56,7 @@ def bench(tmp_path_factory):
     (d / "dangling").symlink_to(d / "nowhere" / "deeper")
     (d / "loop").symlink_to(d / "loop")
     _csv(d / "nov.csv", ["t", "displacement"], [t, x])
+    _csv(d / "inputonly.csv", ["t", "v_in"], [t, v])
     _csv(d / "not.csv", ["v_in", "displacement"], [v, x])
     _csv(d / "nan.csv", h, [t, v, np.where(np.arange(N) == 17, np.nan, x)])
     _csv(d / "inf.csv", h, [t, np.where(np.arange(N) == 5, np.inf, v), x])
@@ -225,7 +226,9 @@ CASES = {
     "no predicted channel": (_fit("pi.toml", "force.csv"), 2, ["none of the channels the model predicts",
                                                                 "displacement"]),
     "observer without v_out": (_fit("observer.toml", "ok.csv"), 2, ["'v_out'", "ok.csv"]),
-    "same file twice": (_fit("pi.toml", "ok.csv", "ok.csv"), 2, ["duplicate experiment name(s) ['ok']"]),
+    "same file twice": (_fit("pi.toml", "ok.csv", "ok.csv"), 2, ["the data file", "ok.csv' is given twice"]),
+    "a file without a fitted channel": (_fit("pi.toml", "ok.csv", "inputonly.csv"), 2,
+                                        ["inputonly.csv", "none of the fitted channels (displacement)"]),
     # ---- CONFIG
     "config missing": (_fit("absent.toml", "ok.csv"), 2, ["absent.toml", "does not exist"]),
     "config is a folder": (_fit("confdir.toml", "ok.csv"), 2, ["confdir.toml", "is a directory"]),
@@ -338,13 +341,14 @@ CASES = {
     "--out a symlink loop": (_fit_opts("--overwrite", out="loop"), 2, ["loop", "is a symbolic link"]),
     "--window without a colon": (_fit_opts("--window", "7"), 2, ["--window", "START:STOP", "'7'"]),
     "--window not numbers": (_fit_opts("--window", "a:b"), 2, ["--window", "'a:b'"]),
-    "--window empty": (_fit_opts("--window", "5:"), 2, ["ok.csv", "slice(5.0, None) keeps 0 sample(s)"]),
+    "--window empty": (_fit_opts("--window", "5:"), 2, ["--window 5:", "ok.csv", "t = 5 s to its end keeps 0 "
+                                                        "sample(s)"]),
     "--max-steps above the bound": (_fit_opts("--max-steps", "100001"), 2, ["--max-steps", "<= 100000"]),
     "--units twice for a column": (_fit_opts("--units", "displacement=um,displacement=nm"), 2,
                                    ["--units", "'displacement' is given twice"]),
-    "--group for a CSV file": (_fit_opts("--group", "multisine"), 2, ["ok.csv", "`group`", "HDF5"]),
+    "--group for a CSV file": (_fit_opts("--group", "multisine"), 2, ["--group multisine", "ok.csv", "HDF5"]),
     "same file through a symlinked folder": (_fit("pi.toml", "sub/inner.csv", "linked/inner.csv"), 2,
-                                             ["the same data file is given twice", "inner.csv"]),
+                                             ["inner.csv' is given twice (also as", "linked"]),
     "400-digit integer": (_fit("bigint.toml", "ok.csv"), 2, ["bigint.toml", "[hysteresis] w0", "finite number"]),
     "400-digit smoothing level": (_fit("bigsmooth.toml", "ok.csv"), 2, ["bigsmooth.toml", "[fit] smoothing"]),
     "400-digit sample rate": (_fit("bigrate.toml", "ok.csv"), 2, ["bigrate.toml", "[data] sample_rate"]),
@@ -409,6 +413,43 @@ def test_case_table_is_large():
 
 
 # ---------------------------------------------------------------------------------------------- what is accepted
+
+
+def test_predict_reads_input_only_files_and_other_layouts(tmp_path, capsys):
+    """A fit's `[data] columns` and `group` read the files to predict from: an input-only file in the training
+    layout, CSV files after a grouped HDF5 fit; `--columns` replaces the mapping (another layout, or '' for none)."""
+    t = np.arange(N) * DT
+    v = 30 * np.sin(2 * np.pi * 3 * t)
+    x = 1e-8 * v + 2e-9 * np.abs(v)
+    with h5py.File(tmp_path / "train.h5", "w") as f:
+        g = f.create_group("run1")
+        for name, col in (("time_ms", 1e3 * t), ("drive_V", v), ("pos_um", 1e6 * x)):
+            g[name] = col
+    _csv(tmp_path / "train2.csv", ["time_ms", "drive_V", "pos_um"], [1e3 * t, 0.5 * v, 0.5e6 * x])
+    _csv(tmp_path / "inputs.csv", ["time_ms", "drive_V"], [1e3 * t, v])
+    _csv(tmp_path / "german.csv", ["zeit", "spannung", "weg"], [1e3 * t, v, 1e6 * x])
+    _csv(tmp_path / "si.csv", ["t", "v_in", "displacement"], [t, v, x])
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(PI + '[data]\ncolumns = {time_ms = "t", drive_V = "v_in", pos_um = "displacement"}\n'
+                   'units = {t = "ms", displacement = "um"}\n')
+    fit = tmp_path / "fit"
+    assert main(["fit", str(cfg), str(tmp_path / "train.h5"), str(tmp_path / "train2.csv"), "--group", "run1",
+                 "--out", str(fit), "--quiet", "--no-figures"]) in (0, 1)
+
+    def predict(name, *opts):
+        out = tmp_path / f"pred_{name}"
+        rc = main(["predict", str(fit), str(tmp_path / f"{name}.csv"), "--out", str(out), *opts])
+        assert rc == 0, capsys.readouterr().err
+        return out, json.loads((out / "metrics.json").read_text())
+
+    out, metrics = predict("inputs")
+    assert fitting.load_experiment(out / "inputs.csv").channel_names == ("displacement",)
+    assert metrics["metrics"] == {}  # nothing measured, nothing scored
+    _, german = predict("german", "--columns", "zeit=t,spannung=v_in,weg=displacement")
+    _, si = predict("si", "--columns", "", "--units", "t=s,displacement=m")
+    rmse = [m["metrics"][k]["displacement"]["rmse"] for m, k in ((german, "german"), (si, "si"))]
+    np.testing.assert_allclose(rmse[0], rmse[1], rtol=1e-9)  # the same record read through either mapping
+    capsys.readouterr()
 
 
 def test_numpy_savetxt_header_and_declared_units(bench, tmp_path, capsys):
