@@ -118,9 +118,12 @@ def check_value(x: _X, ok: Callable[[_X], ArrayLike] | ArrayLike, message: str |
         return attach(ok(x) if callable(ok) else ok)
     with jax.ensure_compile_time_eval():
         good = ok(x) if callable(ok) else ok
-        if is_traced(good):  # an array computed from a concrete `x` under `jit` (pass a predicate to avoid this)
-            return attach(good)
-        good = np.asarray(good)
+        traced = is_traced(good)
+        if not traced:
+            good = np.asarray(good)
+    if traced:  # `ok` reads a traced value (or an array computed under `jit`): the check goes with the computation
+        # (outside `ensure_compile_time_eval`, where `eqx.error_if` on a concrete `x` would fire at trace time)
+        return attach(good)
     if not np.all(good):
         text = message if messages is None else messages[int(np.argmin(good))]
         if eqx.is_array(x) and x.size <= 8:

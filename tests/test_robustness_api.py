@@ -11,6 +11,7 @@ cheap construction or one small compilation.
 import re
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -357,3 +358,15 @@ def test_valid_parameters_still_run():
     for args in ((0.8, 0.3, -0.3), (-0.5, 0.4, 0.1), (0.0, 0.3, -0.9), (1.0, 0.0, 0.5)):
         assert np.all(np.isfinite(np.asarray(pj.BoucWen(*args)(SIG))))
     assert np.all(np.isfinite(np.asarray(eqx.filter_jit(lambda w: pi(weights=w)(SIG_J))(J([1.0, 0.5])))))
+
+
+def test_a_check_of_a_concrete_value_against_a_traced_one_runs_with_the_computation():
+    """`u_max` is concrete and its check reads the traced `u_min`: valid values run under jit and vmap, an invalid
+    one fails when the checked value is used (the check once fired at trace time for every value)."""
+    def u_max(u_min):
+        return pj.PID(1.0, dt=1e-3, u_min=u_min, u_max=200.0).u_max
+
+    assert float(jax.jit(u_max)(jnp.asarray(-10.0))) == 200.0
+    np.testing.assert_array_equal(jax.vmap(u_max)(jnp.array([-10.0, 5.0])), [200.0, 200.0])
+    with pytest.raises(Exception, match="`u_max` must be greater than `u_min`"):
+        eqx.filter_jit(u_max)(jnp.asarray(300.0)).block_until_ready()
