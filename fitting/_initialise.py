@@ -360,7 +360,9 @@ def cold_start_actuator(
 
     ```python
     init = fitting.cold_start_actuator(dataset, n_plays=6, creep_order=2)
-    result = fitting.fit(init, dataset, free=[...], weights="noise")
+    free = ["hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0", "creep", "dynamics.omega",
+            "dynamics.zeta"]
+    result = fitting.fit(init, dataset, free=free, weights="noise")
     ```
     """
     for name, value, low in (

@@ -866,7 +866,7 @@ def main(argv: list[str] | None = None, *, _restore_signals: bool = True) -> int
 
     ```python
     from fitting.cli import main
-    main(["fit", "model.toml", "run1.csv", "--out", "fits/run1"])
+    main(["fit", "model.toml", "run1.csv", "--out", "run1_fit"])  # --out's parent folder must exist
     ```
     """
     with _signals_handled(restore=_restore_signals):

@@ -104,11 +104,11 @@ class OrderedPositive(AbstractReparam):
         value = check_finite(as_float_array(value, "value"), "value")
         if value.ndim != 1:
             raise PiezojaxValueError(f"`value` must be 1-D for OrderedPositive, got shape {value.shape}")
-        gaps = jnp.diff(value, prepend=jnp.asarray([lower], value.dtype))
-        gaps = check_value(
-            gaps, lambda x: jnp.all(x > 0), f"`value` must be strictly ascending and above {lower} for OrderedPositive"
+        value = check_value(  # checked on `value`, so that the message shows it (not its gaps)
+            value, lambda x: jnp.all(jnp.diff(x, prepend=jnp.asarray([lower], x.dtype)) > 0),
+            f"`value` must be strictly ascending and above {lower} for OrderedPositive",
         )
-        return cls(inv_softplus(gaps), lower)
+        return cls(inv_softplus(jnp.diff(value, prepend=jnp.asarray([lower], value.dtype))), lower)
 
     def unwrap(self) -> Array:
         return self.lower + jnp.cumsum(softplus(self.raw))

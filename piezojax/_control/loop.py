@@ -68,7 +68,8 @@ def closed_loop(
     **Returns:** a `LoopRecord`.
 
     ```python
-    pid = pj.PID(kp=0.5, ki=200.0, kd=0.0, dt=1e-3)
+    plant = pj.ChenBench().plant()                  # a plant from paper 002's bench
+    pid = pj.PID(kp=2e5, ki=4e7, kd=0.0, dt=1e-3, offset=100.0, u_min=-20.0, u_max=200.0)
     rec = pj.closed_loop(pid, plant, reference)
     error = rec.reference - rec.channels["displacement"]
     ```

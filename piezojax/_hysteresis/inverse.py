@@ -68,9 +68,9 @@ class HysteresisInverse(AbstractHysteresisCell):
     **Returns:** called on a target output of shape `(time,)`, the input, shape `(time,)`.
 
     ```python
-    op = pj.BoucWen(A=0.8, beta=0.03, gamma=0.01, d=1.0)
-    inv = op.inverse(lower=-100.0, upper=100.0)      # a HysteresisInverse
-    v = inv(y_desired)                              # op(v) == y_desired at every sample
+    op = pj.BoucWen(A=0.8, beta=0.03, gamma=0.01, d=1.3)   # d > max(A, 2 beta A / (beta + gamma)) = 1.2
+    inv = op.inverse(lower=-100.0, upper=100.0)             # a HysteresisInverse
+    v = inv(y_desired)                                     # op(v) == y_desired at every sample
     ```
     """
 
