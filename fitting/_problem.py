@@ -462,6 +462,12 @@ class Problem:
                     raise PiezojaxValueError(f"`targets`: {c!r} is an input of the predictor, not a target")
                 if c not in available:
                     raise PiezojaxValueError(f"`targets`: no experiment in the dataset has the channel {c!r}")
+        useless = [exp.name for exp in dataset if not any(exp.has(c) for c in targets)]
+        if useless:
+            raise PiezojaxValueError(
+                f"experiment {useless[0]!r} has none of the target channels ({', '.join(targets)}): it would add "
+                "nothing to the fit; leave it out (predict it with `fitting.predict`)"
+            )
         self._set(targets=tuple(targets))
         self._set(_channel_weights=self._weights(weights))
 

@@ -280,6 +280,8 @@ def test_bad_input_errors(data):
         fitting.Problem(model, only_v)
     with pytest.raises(PiezojaxValueError, match="does not predict 'force'"):
         fitting.Problem(model, data, targets=["force"])
+    with pytest.raises(PiezojaxValueError, match="experiment 'x' has none of the target channels"):
+        fitting.Problem(model, fitting.Dataset([*data, *only_v]))
     obs = pj.IvanBench().observer()
     with pytest.raises(PiezojaxValueError, match="lacks the channel.*v_out"):
         fitting.Problem(obs, data)
