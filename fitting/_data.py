@@ -554,8 +554,9 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
                 f"holds numbers; the first line must name the columns (t, v_in, {', '.join(CHANNELS)}), or name "
                 "them by position (columns = {1 = \"t\", 2 = \"v_in\", ...} in [data], or --columns 1=t,2=v_in,...)"
             )
-    if any(not h for h in header):
-        raise PiezojaxValueError(f"file {str(path)!r}: empty column name in header row {head!r}")
+    # a column without a name (e.g. the index pandas' DataFrame.to_csv writes first) is an unknown column, which
+    # `ignore_extra` skips
+    header = [h or f"(unnamed column {j + 1})" for j, h in enumerate(header)]
     dup = sorted({h for h in header if header.count(h) > 1})
     if dup:
         raise PiezojaxValueError(f"file {str(path)!r}: duplicate column(s) {dup} in header row")

@@ -234,6 +234,11 @@ def test_csv_comments_blank_lines_and_extra_columns(tmp_path):
     np.testing.assert_array_equal(e["force"], [0.5, 0.25, 0.125])
     np.testing.assert_array_equal(e.v_in, [1.0, 2.0, 3.0])
     assert math.isclose(e.dt, 0.1)
+    # pandas' DataFrame.to_csv writes its index first, in a column without a name
+    p.write_text(",t,v_in,force\n0,0.0,1.0,0.5\n1,0.1,2.0,0.25\n")
+    with pytest.raises(PiezojaxValueError, match=r"unknown column\(s\) \['\(unnamed column 1\)'\].*ignore_extra"):
+        load_experiment(p)
+    np.testing.assert_array_equal(load_experiment(p, ignore_extra=True)["force"], [0.5, 0.25])
 
 
 @pytest.mark.parametrize(
