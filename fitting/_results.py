@@ -117,6 +117,7 @@ class FitResult:
                 for n, v, s, st in zip(self.parameter_names, self.values, self.std_errors, self.std_error_status)
             },
             "correlation": np.asarray(self.correlation).tolist(),
+            "correlation_names": list(self.parameter_names),  # its rows and columns, as in `parameters`
             "metrics": self.metrics,
             "history": self.history,
             "history_steps": self.history_steps,

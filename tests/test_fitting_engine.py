@@ -384,7 +384,8 @@ def test_save_load_atomic(data, tmp_path, monkeypatch):
     out = res.save(tmp_path / "fit", extra={"note": "test"})
     summary = json.loads((out / "result.json").read_text())
     assert summary["success"] and summary["note"] == "test"
-    assert set(summary["parameters"]) == set(res.parameter_names)
+    assert list(summary["parameters"]) == summary["correlation_names"] == list(res.parameter_names)
+    assert np.shape(summary["correlation"]) == (len(res.parameter_names),) * 2
     assert (out / "report.txt").read_text().startswith("fit converged")
     assert list(out.glob("timeseries_*.png")) and list(out.glob("loops_*.png"))
     loaded = fitting.load_model(out, like=_model())
