@@ -501,13 +501,22 @@ def _columns_to_experiment(
     for k, scale in scales.items():
         if k in data and scale != 1.0:
             data[k] = _column(data[k], label, k) * scale
-    exp = Experiment(
-        t=data["t"],
-        v_in=data["v_in"],
-        channels={k: data[k] for k in CHANNELS if k in data},
-        name=path.stem if name is None else name,
-        source=src,
-    )
+    try:
+        exp = Experiment(
+            t=data["t"],
+            v_in=data["v_in"],
+            channels={k: data[k] for k in CHANNELS if k in data},
+            name=path.stem if name is None else name,
+            source=src,
+        )
+    except PiezojaxValueError as e:
+        if not renames and not any(v != 1.0 for v in scales.values()):
+            raise
+        notes = [f"{v} = file column {k!r}" for k, v in renames.items()]
+        converted = [f"{k} from {units[k]}" for k, v in scales.items() if v != 1.0]
+        if converted:
+            notes.append(f"converted to SI: {', '.join(converted)}")
+        raise PiezojaxValueError(f"{e} ({'; '.join(notes)})") from e
     if "t" not in scales and sample_rate is None and _looks_like_sample_indices(exp.t):
         t = exp.t
         raise PiezojaxValueError(

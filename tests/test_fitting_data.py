@@ -234,6 +234,11 @@ def test_csv_comments_blank_lines_and_extra_columns(tmp_path):
     np.testing.assert_array_equal(e["force"], [0.5, 0.25, 0.125])
     np.testing.assert_array_equal(e.v_in, [1.0, 2.0, 3.0])
     assert math.isclose(e.dt, 0.1)
+    # an error about a renamed column, in converted units, says how the file was read
+    p.write_text("time_ms,drive_V\n0,1\n1,2\n2.5,3\n3,4\n")
+    with pytest.raises(PiezojaxValueError, match=r"'t' is not uniformly sampled.*\(t = file column 'time_ms'; "
+                       r"v_in = file column 'drive_V'; converted to SI: t from ms\)"):
+        load_experiment(p, columns={"time_ms": "t", "drive_V": "v_in"}, units={"t": "ms"})
     # pandas' DataFrame.to_csv writes its index first, in a column without a name
     p.write_text(",t,v_in,force\n0,0.0,1.0,0.5\n1,0.1,2.0,0.25\n")
     with pytest.raises(PiezojaxValueError, match=r"unknown column\(s\) \['\(unnamed column 1\)'\].*ignore_extra"):
