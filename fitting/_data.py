@@ -132,6 +132,9 @@ _SLICE_RTOL = 1e-6  # a slice boundary this close (relative to dt) to a sample c
 
 SUPPORTED_SUFFIXES: tuple[str, ...] = (".csv", ".npz", ".h5", ".hdf5", ".mat")
 
+UNGROUPED_SUFFIXES = (".csv", ".npz")
+"""The data formats without groups (read whole): a `group` concerns the others, HDF5 and `.mat`."""
+
 FILE_MARKER = "piezojax_output"
 """Name under which `save_experiment(..., marker=...)` records the piezojax command that wrote a file (a variable in
 NPZ and .mat files, a root attribute in HDF5, the first comment line in CSV); readers skip it."""
@@ -464,8 +467,11 @@ def _columns_to_experiment(
     label = f"file {src!r}"
     data = {k: v for k, v in data.items() if k != FILE_MARKER}
     renames = parse_columns(columns)
-    # a measured channel the file lacks is just absent (a file to predict from needs only t and v_in)
-    renames = {k: v for k, v in renames.items() if k in data or v not in CHANNELS}
+    # a file with none of the renamed channels is an input-only file (to predict from): those renames do not apply;
+    # a file with some of them must have all (a misspelt name is an error, not a channel silently left out)
+    channel_sources = [k for k, v in renames.items() if v in CHANNELS]
+    if channel_sources and not any(k in data for k in channel_sources):
+        renames = {k: v for k, v in renames.items() if v not in CHANNELS}
     absent = [k for k in renames if k not in data]
     if absent:
         raise PiezojaxValueError(f"{label}: `columns` renames {absent}, which the file does not have; found "
@@ -512,7 +518,8 @@ def _columns_to_experiment(
     except PiezojaxValueError as e:
         if not renames and not any(v != 1.0 for v in scales.values()):
             raise
-        notes = [f"{v} = file column {k!r}" for k, v in renames.items()]
+        positional = path.suffix.lower() == ".csv" and all(k.isdigit() for k in renames)
+        notes = [f"{v} = {'field ' + k if positional else f'file column {k!r}'}" for k, v in renames.items()]
         converted = [f"{k} from {units[k]}" for k, v in scales.items() if v != 1.0]
         if converted:
             notes.append(f"converted to SI: {', '.join(converted)}")
@@ -563,6 +570,10 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
                 f"holds numbers; the first line must name the columns (t, v_in, {', '.join(CHANNELS)}), or name "
                 "them by position (columns = {1 = \"t\", 2 = \"v_in\", ...} in [data], or --columns 1=t,2=v_in,...)"
             )
+    if (usecols is None and delim is not None and len(header) > 1 and not header[-1]
+            and all(not ln.rsplit(delim, 1)[-1].strip() for _, ln in lines[1:])):
+        # every line ends with the delimiter (some spreadsheet exports): no last column
+        usecols = list(range(len(header) - 1))
     # a column without a name (e.g. the index pandas' DataFrame.to_csv writes first) is an unknown column, which
     # `ignore_extra` skips
     header = [h or f"(unnamed column {j + 1})" for j, h in enumerate(header)]
@@ -711,9 +722,9 @@ def load_experiment(
       (a displacement spanning centimetres, kilovolt signals, …) give a `UnitWarning`.
     - `columns`: renames file columns, `{file column: column}` (e.g. `{"u": "v_in", "y": "displacement"}`); for a
       CSV file without a header row, the keys are the 1-based positions of the fields to read
-      (`{"2": "t", "3": "displacement", "4": "v_in"}`; other fields are skipped). A renamed measured channel the
-      file does not have is left out (one mapping reads both the training files and the input-only files to predict
-      from); a renamed `t` or `v_in` the file does not have is an error.
+      (`{"2": "t", "3": "displacement", "4": "v_in"}`; other fields are skipped). A file that has none of the renamed
+      measured channels is read as an input-only file (so one mapping reads both the training files and the files
+      to predict from); otherwise a renamed column the file does not have is an error.
     - `sample_rate`: for a file without a `t` column, the sampling rate [Hz]; $t_k = k / f_s$.
 
     **Returns:**
@@ -732,7 +743,8 @@ def load_experiment(
     if p.is_dir():
         raise PiezojaxValueError(f"file {str(p)!r} is a directory, not a data file")
     suffix = p.suffix.lower()
-    if group is not None and suffix in (".csv", ".npz"):
+    group = group or None  # "": the root
+    if group is not None and suffix in UNGROUPED_SUFFIXES:
         raise PiezojaxValueError(f"file {str(p)!r}: `group` ({group!r}) applies to HDF5 and .mat files, not {suffix}")
     try:
         if suffix == ".csv":
@@ -972,7 +984,8 @@ class Dataset(Sequence):
                     raise PiezojaxValueError(f"the data file {str(seen[real])!r} is given twice{also}")
                 seen.setdefault(real, p)
         names = _unique_names(ps)
-        grouped = [p.suffix.lower() not in (".csv", ".npz") for p in ps]
+        group = group or None  # "": the root
+        grouped = [p.suffix.lower() not in UNGROUPED_SUFFIXES for p in ps]
         if group is not None and not any(grouped):
             files = ", ".join(repr(str(p)) for p in ps[:3]) + (", …" if len(ps) > 3 else "")
             raise PiezojaxValueError(f"`group` ({group!r}) applies to HDF5 and .mat files, and none of the data files "

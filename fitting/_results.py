@@ -180,7 +180,8 @@ class FitResult:
         `extra`), `report.txt` and, with `figures=True`, PNG figures. Nothing appears at `path` unless all succeed.
 
         `overwrite=True` replaces only a folder written by an earlier `save` (or `piezojax fit`), recognised by its
-        marker file; never the working directory or a folder containing it."""
+        marker file, and holding nothing but what was written then (see `fitting.files.atomic_directory`); never the
+        working directory or a folder containing it."""
         from .files import atomic_directory
 
         path = Path(path)

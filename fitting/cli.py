@@ -394,9 +394,9 @@ def _pairs(items: list[str] | None, option: str, example: str) -> dict[str, str]
     return out
 
 
-def _data_settings(args, base: dict, paths) -> dict:
-    """How to read the data files `paths`: `base` (CONFIG's `[data]`, or the fit's for `predict`) with the command
-    line's options on top; checked here, so that a bad option is named before any file is read."""
+def _data_settings(args, base: dict) -> dict:
+    """How to read the data files: `base` (CONFIG's `[data]`, or the fit's for `predict`) with the command line's
+    options on top; checked here, so that a bad option is named before any file is read."""
     from ._data import parse_columns, parse_units
 
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
@@ -410,14 +410,8 @@ def _data_settings(args, base: dict, paths) -> dict:
         out["units"] = {**out.get("units", {}), **units}
     if columns or clear:
         out["columns"] = columns
-    ungrouped = all(Path(p).suffix.lower() in (".csv", ".npz") for p in paths)
     if args.group is not None:
         out["group"] = args.group.strip() or None  # `--group ''`: the root
-        if out["group"] is not None and ungrouped:
-            raise _error(f"--group {args.group}: a group applies to HDF5 and .mat files, and none of the data files "
-                         f"is one ({', '.join(repr(str(p)) for p in paths[:3])}{', …' if len(paths) > 3 else ''})")
-    elif ungrouped:
-        out.pop("group", None)  # the group of CONFIG or of the fit concerns HDF5 and .mat files only
     if args.sample_rate is not None:
         if not (args.sample_rate > 0 and args.sample_rate < float("inf")):
             raise _error(f"--sample-rate must be a positive number of Hz, got {args.sample_rate}")
@@ -477,12 +471,20 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
     return p
 
 
-def _load_data(paths, settings: dict):
+def _load_data(paths, settings: dict, group_option: str | None):
     """The `Dataset` of `paths` read with `settings` (`fitting.load_experiment`'s keywords); unit-plausibility
-    warnings on stderr, and returned for the result files."""
+    warnings on stderr, and returned for the result files. `group_option`: `--group` as given (None: not given); a
+    group from CONFIG or the fit concerns the HDF5 and .mat files only, and is not used when `paths` has none."""
     import fitting
 
-    from ._data import UnitWarning
+    from ._data import UNGROUPED_SUFFIXES, UnitWarning
+
+    if settings.get("group") is not None and all(Path(p).suffix.lower() in UNGROUPED_SUFFIXES for p in paths):
+        if group_option is not None:
+            files = ", ".join(repr(str(p)) for p in paths[:3]) + (", …" if len(paths) > 3 else "")
+            raise _error(f"--group {group_option}: a group applies to HDF5 and .mat files, and none of the data "
+                         f"files is one ({files})")
+        settings = {k: v for k, v in settings.items() if k != "group"}
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UnitWarning)
@@ -659,9 +661,9 @@ def _cmd_fit(args) -> int:
         raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
     out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
     config = load_config(args.config)
-    settings = _data_settings(args, config.data, args.data)
+    settings = _data_settings(args, config.data)
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
-        dataset, unit_warnings = _load_data(args.data, settings)
+        dataset, unit_warnings = _load_data(args.data, settings, args.group)
         if args.window is not None:
             dataset = _windowed(dataset, args.window)
         targets = config.fit_targets(dataset)
@@ -777,11 +779,11 @@ def _cmd_predict(args) -> int:
     out = _check_output(args.out, args.overwrite, "predict", inputs=[*args.data, *(args.history or [])],
                         fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
-    settings = _data_settings(args, _fit_data_settings(args.model_dir, config), [*args.data, *(args.history or [])])
+    settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
-        dataset, unit_warnings = _load_data(args.data, settings)
+        dataset, unit_warnings = _load_data(args.data, settings, args.group)
         results, metrics = [], {}
-        history = _load_data(args.history, settings)[0] if args.history else ()
+        history = _load_data(args.history, settings, args.group)[0] if args.history else ()
         for exp in dataset:
             preds = fitting.predict(model, exp, predictor=config.predictor(), history=history)
             preds = {c: preds[c] for c in config.outputs}
@@ -832,9 +834,9 @@ def _cmd_simulate(args) -> int:
 
     out = _check_output(args.out, args.overwrite, "simulate", inputs=[args.input, args.config])
     config = load_config(args.config)
-    settings = _data_settings(args, config.data, [args.input])
+    settings = _data_settings(args, config.data)
     model = pj.unwrap(config.build(None, require_values=True))
-    dataset, _ = _load_data([args.input], settings)
+    dataset, _ = _load_data([args.input], settings, args.group)
     exp = dataset[0]
     preds = fitting.predict(model, exp, predictor=config.predictor())
     preds = {c: preds[c] for c in config.outputs}
@@ -892,6 +894,15 @@ def _main(argv) -> int:
             # numpy's RuntimeWarnings (an overflow in a trial step, an all-NaN slice) are not messages for the
             # command line: the outcome says what went wrong, in one line
             warnings.simplefilter("ignore", RuntimeWarning)
+            default_show = warnings.showwarning
+
+            def show(message, category, *args, **kwargs):  # by name: piezojax need not be imported yet
+                if category.__name__ == "OutputWarning":
+                    _info(f"warning: {message}")
+                else:
+                    default_show(message, category, *args, **kwargs)
+
+            warnings.showwarning = show  # restored by catch_warnings
             _setup_jax(figures=args.command == "fit" and not args.no_figures)
             return commands[args.command](args)
     except MemoryError as e:

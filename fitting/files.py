@@ -17,6 +17,7 @@ import re
 import shutil
 import stat
 import tempfile
+import warnings
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -133,14 +134,55 @@ def _folder_entries(p: Path) -> list[str]:
     return sorted(e for e in out if e != MARKER)
 
 
+# what file browsers leave in a folder they show: not a user's data
+_OS_METADATA = (".DS_Store", "Thumbs.db", "desktop.ini")
+
+
 def _foreign_entries(p: Path) -> list[str] | None:
     """What the folder `p` holds that its marker does not list as written with it (files a user added after the
-    run), or None for a marker without a list (written by a version before the lists)."""
-    written = _read_marker_data(p).get("files")
-    if not isinstance(written, list):
+    run; file browsers' metadata aside), or None for a marker without a list (written by a version before the
+    lists). A list that is not a list of paths raises `PiezojaxValueError`."""
+    data = _read_marker_data(p)
+    if "files" not in data:
         return None
+    written = data["files"]
+    if not (isinstance(written, list) and all(isinstance(e, str) for e in written)):
+        raise PiezojaxValueError(f"the marker file {str(p / MARKER)!r} is damaged (its list of the files written is "
+                                 "not a list of paths), so what else the folder holds cannot be told")
     written = set(written)
-    return [e for e in _folder_entries(p) if e not in written]
+
+    def metadata(e):
+        name = e.rstrip("/").rsplit("/", 1)[-1]
+        return name in _OS_METADATA or name.startswith("._")
+
+    return [e for e in _folder_entries(p) if e not in written and not metadata(e)]
+
+
+class OutputWarning(UserWarning):
+    """Something about an output folder the user should know, though the run succeeded (`atomic_directory`)."""
+
+
+def _set_aside(old: Path, p: Path, kind: str | None) -> Path | None:
+    """After `p` was replaced, its previous version sits at the temporary `old`: if that holds what its marker does
+    not list (a user added it while the run was computing), move it to a visible sibling of `p` and return that
+    path, instead of deleting it; else None."""
+    if kind is None:
+        return None
+    try:
+        foreign = _foreign_entries(old)
+    except PiezojaxValueError:
+        foreign = [MARKER]
+    if not foreign:
+        return None
+    for i in range(1, 1000):
+        keep = p.with_name(f"{p.name}.previous" + ("" if i == 1 else f"-{i}"))
+        if not os.path.lexists(keep):
+            try:
+                os.rename(old, keep)
+            except OSError:
+                continue
+            return keep
+    return None
 
 
 def _check_name_length(p: Path) -> None:
@@ -366,8 +408,11 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
     Never replaced, whatever `overwrite` says: the working directory, a directory containing it, and the home
     directory. With `kind`, the new folder gets a marker file (`MARKER`) recording it and the files written, and
     `overwrite` replaces only a folder whose marker records the same `kind` (a previous output of the same command)
-    and which holds nothing else than those files (a file a user put there afterwards is never deleted: the run is
-    refused, naming it).
+    and which holds nothing else than those files: a file a user put there afterwards is never deleted (the run is
+    refused on entry, naming it; one added while the run computes is kept with the previous folder, moved to
+    `NAME.previous`, and an `OutputWarning` says so). File browsers' metadata (`.DS_Store`, `Thumbs.db`,
+    `desktop.ini`, `._*`) does not count; a marker from a version before the lists lets the folder be replaced as
+    it is. An empty directory is replaced like an absent one.
     Temporaries left by killed runs next to `path` are removed on entry; if a live process is writing `path`, entry
     fails.
 
@@ -415,13 +460,14 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
                         "nothing was replaced and this run's outputs were discarded"
                     ) from e
                 raise PiezojaxValueError(f"cannot create directory {str(p)!r}: {_describe_os_error(e)}") from e
-        elif not overwrite:
+        elif not (overwrite or _is_empty_directory(p)):
             raise PiezojaxValueError(
                 f"output directory {str(p)!r} was created by another program while this run was computing; nothing "
                 "was replaced and this run's outputs were discarded"
             )
         else:
-            _check_replaceable_directory(p, overwrite, kind)  # what appeared meanwhile must qualify too
+            # what appeared meanwhile must qualify too; what a user added to it is dealt with after the swap
+            _check_replaceable_directory(p, True, kind, foreign=False)
             if _exchange(tmp, p):
                 old = tmp  # after the exchange the temporary name holds the old directory
             else:
@@ -434,7 +480,13 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
                     os.rename(old, p)
                     raise
             _fsync_directory(p.parent)
-            shutil.rmtree(old, ignore_errors=True)
+            kept = _set_aside(old, p, kind)
+            if kept is None:
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                warnings.warn(f"while this run was computing, files were added to the output folder {str(p)!r} it "
+                              f"replaced; that previous folder was kept, as {str(kept)!r}", OutputWarning,
+                              stacklevel=3)
             return
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -442,9 +494,21 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
     _fsync_directory(p.parent)
 
 
-def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True") -> None:
+def _is_empty_directory(p: Path) -> bool:
+    try:
+        if not p.is_dir() or p.is_symlink():
+            return False
+        with os.scandir(p) as entries:
+            return next(entries, None) is None
+    except OSError:
+        return False
+
+
+def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True", *,
+                                 foreign: bool = True) -> None:
     """Refuse, before any work, an output directory that must not be created or replaced (see `atomic_directory`);
-    `option` is how the caller's user asks to overwrite (`"--overwrite"` on the command line)."""
+    `option` is how the caller's user asks to overwrite (`"--overwrite"` on the command line); `foreign=False`:
+    do not look for what the marker does not list."""
     why = _protected(p)
     if why is not None:
         raise PiezojaxValueError(f"refusing to write the output folder {str(p)!r}: {why}")
@@ -452,6 +516,8 @@ def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opt
         return
     if not p.is_dir():
         raise PiezojaxValueError(f"output folder {str(p)!r} is a file")
+    if _is_empty_directory(p):  # nothing to lose (e.g. made with mkdir for this run)
+        return
     if kind is None:
         if not overwrite:
             raise PiezojaxValueError(f"output folder {str(p)!r} already exists; pass {option} to replace it")
@@ -464,7 +530,11 @@ def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opt
             f"replaces only the output of an earlier `piezojax {kind}` (a folder with the marker file {MARKER}); "
             "remove it yourself or choose another output folder"
         )
-    foreign = _foreign_entries(p)
+    try:
+        foreign = _foreign_entries(p) if foreign else None
+    except PiezojaxValueError as e:
+        raise PiezojaxValueError(f"refusing to replace {str(p)!r}: {e}; remove the folder yourself or choose another "
+                                 "output folder") from e
     if foreign:
         shown = ", ".join(repr(e) for e in foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
         raise PiezojaxValueError(

@@ -261,6 +261,7 @@ def test_bad_input_is_one_line_and_writes_nothing(work, capsys, case):
         out = {"unwritable output": d / "afile" / "sub", "output parent missing": d / "nowhere" / "sub",
                "output exists": d / "existing_out"}[case]
         (d / "existing_out").mkdir(exist_ok=True)
+        (d / "existing_out" / "notes.txt").write_text("not empty\n")  # an empty folder is replaced
         expected = {"unwritable output": "is not a directory", "output parent missing": "does not exist",
                     "output exists": "which already exists: it has no piezojax marker"}[case]
         argv = ["fit", str(d / "pi_creep.toml"), files[0], "--out", str(out)]

@@ -234,6 +234,13 @@ def test_csv_comments_blank_lines_and_extra_columns(tmp_path):
     np.testing.assert_array_equal(e["force"], [0.5, 0.25, 0.125])
     np.testing.assert_array_equal(e.v_in, [1.0, 2.0, 3.0])
     assert math.isclose(e.dt, 0.1)
+    # one mapping reads a training file and an input-only file; a file with some renamed channels must have all
+    mapping = {"time_ms": "t", "drive_V": "v_in", "pos_um": "displacement", "f_N": "force"}
+    p.write_text("time_ms,drive_V\n0,1\n1,2\n2,3\n")
+    assert load_experiment(p, columns=mapping, units={"t": "ms"}).channel_names == ()
+    p.write_text("time_ms,drive_V,pos_um\n0,1,5\n1,2,6\n2,3,7\n")
+    with pytest.raises(PiezojaxValueError, match=r"`columns` renames \['f_N'\], which the file does not have"):
+        load_experiment(p, columns=mapping, units={"t": "ms"})
     # an error about a renamed column, in converted units, says how the file was read
     p.write_text("time_ms,drive_V\n0,1\n1,2\n2.5,3\n3,4\n")
     with pytest.raises(PiezojaxValueError, match=r"'t' is not uniformly sampled.*\(t = file column 'time_ms'; "
@@ -244,6 +251,9 @@ def test_csv_comments_blank_lines_and_extra_columns(tmp_path):
     with pytest.raises(PiezojaxValueError, match=r"unknown column\(s\) \['\(unnamed column 1\)'\].*ignore_extra"):
         load_experiment(p)
     np.testing.assert_array_equal(load_experiment(p, ignore_extra=True)["force"], [0.5, 0.25])
+    # every line ending with the delimiter (some spreadsheet exports) adds no column
+    p.write_text("t,v_in,force,\n0.0,1.0,0.5,\n0.1,2.0,0.25,\n")
+    assert load_experiment(p).channel_names == ("force",)
 
 
 @pytest.mark.parametrize(

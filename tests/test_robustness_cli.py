@@ -8,6 +8,7 @@ existed, unchanged) and no temporary left behind.
 """
 
 import json
+import warnings
 from pathlib import Path
 
 import h5py
@@ -154,6 +155,7 @@ def bench(tmp_path_factory):
     (d / "confdir.toml").mkdir()
     (d / "afile").write_text("a file\n")
     (d / "existing").mkdir()
+    (d / "existing" / "notes.txt").write_text("a user's folder, not empty (an empty one is replaced)\n")
     (d / "sub" / "deeper").mkdir(parents=True)
     _csv(d / "sub" / "inner.csv", h, [t, v, x])
     (d / "fits").mkdir()
@@ -443,6 +445,7 @@ def test_predict_reads_input_only_files_and_other_layouts(tmp_path, capsys):
         return out, json.loads((out / "metrics.json").read_text())
 
     out, metrics = predict("inputs")
+    predict("inputs", "--history", str(tmp_path / "train.h5"), "--overwrite")  # the fit's group: the history's
     assert fitting.load_experiment(out / "inputs.csv").channel_names == ("displacement",)
     assert metrics["metrics"] == {}  # nothing measured, nothing scored
     _, german = predict("german", "--columns", "zeit=t,spannung=v_in,weg=displacement")
@@ -546,12 +549,37 @@ def test_overwrite_never_deletes_what_a_user_added_to_an_output_folder(tmp_path)
     with fitting.files.atomic_directory(out, overwrite=True, kind="fit") as d:
         (d / "result.json").write_text('{"new": 1}')
     assert json.loads((out / "result.json").read_text()) == {"new": 1} and not (out / "figures").exists()
+    # a file added while the run computes: the run's folder replaces the old one, which is kept, not deleted
+    with pytest.warns(fitting.files.OutputWarning, match=r"files were added .* kept, as .*fit\.previous"):
+        with fitting.files.atomic_directory(out, overwrite=True, kind="fit") as d:
+            (d / "result.json").write_text('{"newer": 1}')
+            (out / "late.txt").write_text("added meanwhile\n")
+            (out / ".DS_Store").write_bytes(b"")  # a file browser's metadata alone would not count
+    assert json.loads((out / "result.json").read_text()) == {"newer": 1}
+    assert (tmp_path / "fit.previous" / "late.txt").read_text() == "added meanwhile\n"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # only a browser's metadata added: the old folder goes, silently
+        with fitting.files.atomic_directory(out, overwrite=True, kind="fit") as d:
+            (d / "result.json").write_text("{}")
+            (out / "._result.json").write_bytes(b"")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit", "fit.previous"]
+    # a damaged list protects like a list: refused, naming the marker
+    marker_file = out / fitting.files.MARKER
+    marker_file.write_text(json.dumps({"written_by": "piezojax", "kind": "fit", "files": "result.json"}))
+    with pytest.raises(pj.PiezojaxValueError, match=r"refusing to replace .*marker file .* is damaged"):
+        with fitting.files.atomic_directory(out, overwrite=True, kind="fit"):
+            pass
     # a marker written before the list of files: replaced as before
-    (out / fitting.files.MARKER).write_text(json.dumps({"written_by": "piezojax", "kind": "fit"}))
+    marker_file.write_text(json.dumps({"written_by": "piezojax", "kind": "fit"}))
     (out / "extra.txt").write_text("x")
     with fitting.files.atomic_directory(out, overwrite=True, kind="fit") as d:
         (d / "result.json").write_text("{}")
     assert not (out / "extra.txt").exists()
+    # an empty folder (made for the run) is replaced without overwrite
+    (tmp_path / "made").mkdir()
+    with fitting.files.atomic_directory(tmp_path / "made", kind="fit") as d:
+        (d / "result.json").write_text("{}")
+    assert (tmp_path / "made" / "result.json").exists()
 
 
 def test_leftovers_of_killed_runs_are_removed_and_live_writers_refused(tmp_path):
