@@ -402,6 +402,8 @@ class Problem:
     - `dataset`: a `fitting.Dataset` (or a sequence of `fitting.Experiment`).
     - `predictor`: a `fitting.Predictor` (default: `default_predictor(model)`).
     - `targets`: channels to fit (default: every predicted channel the data contain, except the predictor's inputs).
+      Every experiment must measure at least one of them (`PiezojaxValueError` naming it otherwise: it would add
+      nothing to the fit).
     - `free`: which parameters are fitted (see `free_mask`); the others stay frozen.
     - `weights`: `"range"` (default: $w_c = 1/\mathrm{range}_c$ over all experiments, so each channel counts by
       its relative error), `"noise"` ($w_c = 1/\hat\sigma_c$, the robust noise estimate of `estimate_noise_std`,
