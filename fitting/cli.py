@@ -755,7 +755,13 @@ def load_fitted(model_dir) -> tuple:
     if not cfg_file.exists() or not (d / "model.eqx").exists():
         raise _error(f"{str(d)!r} is not a folder written by `piezojax fit` (no config.toml/model.eqx)")
     config = parse_config(cfg_file.read_text(encoding="utf-8"), source=str(cfg_file))
-    model = fitting.load_model(d, like=config.build(None))
+    from piezojax._checks import PiezojaxValueError
+
+    try:
+        model = fitting.load_model(d, like=config.build(None))
+    except PiezojaxValueError as e:
+        raise _error(f"{str(d)!r}: model.eqx does not match the model of config.toml there (was one of them edited, "
+                     f"or copied from another fit?): {e}") from e
     return config, model
 
 

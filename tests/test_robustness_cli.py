@@ -8,6 +8,7 @@ existed, unchanged) and no temporary left behind.
 """
 
 import json
+import shutil
 import warnings
 from pathlib import Path
 
@@ -163,6 +164,10 @@ def bench(tmp_path_factory):
                  "--no-figures"]) in (0, 1)
     assert main(["predict", str(d / "fits" / "fit"), str(d / "ok.csv"), "--out", str(d / "pred")]) == 0
     (d / "fitlink").symlink_to(d / "fits" / "fit")
+    shutil.copytree(d / "fits" / "fit", d / "fits" / "edited")
+    cfg = (d / "fits" / "edited" / "config.toml").read_text()
+    assert "plays = 2" in cfg
+    (d / "fits" / "edited" / "config.toml").write_text(cfg.replace("plays = 2", "plays = 3"))
     assert main(["simulate", str(d / "known.toml"), "--input", str(d / "ok.csv"), "--out", str(d / "sim.csv")]) == 0
     return d
 
@@ -332,6 +337,8 @@ CASES = {
                                   ["refusing to replace", "no piezojax marker"]),
     "predict from a non-fit folder": (_predict("existing", "ok.csv"), 2, ["not a folder written by `piezojax fit`"]),
     "predict from a missing folder": (_predict("nofit", "ok.csv"), 2, ["nofit", "does not exist"]),
+    "predict from an edited fit folder": (_predict("fits/edited", "ok.csv"), 2,
+                                          ["edited", "model.eqx does not match the model of config.toml"]),
     "predict bad data": (_predict("fits/fit", "nan.csv"), 2, ["nan.csv", "row 17"]),
     "predict with a history of another rate": (_predict("fits/fit", "ok.csv", opts=("--history", "{d}/slow.csv")), 2,
                                                 ["slow", "sampled every 0.002 s", "same sampling step"]),
