@@ -164,8 +164,8 @@ class OutputWarning(UserWarning):
 
 def _set_aside(old: Path, p: Path, kind: str | None) -> Path | None:
     """After `p` was replaced, its previous version sits at the temporary `old`: if that holds what its marker does
-    not list (a user added it while the run was computing), move it to a visible sibling of `p` and return that
-    path, instead of deleting it; else None."""
+    not list (a user added it while the run was computing), move it to a visible sibling of `p` (or, if none can
+    be made, leave it at `old`) and return where it is, instead of deleting it; else None."""
     if kind is None:
         return None
     try:
@@ -182,7 +182,7 @@ def _set_aside(old: Path, p: Path, kind: str | None) -> Path | None:
             except OSError:
                 continue
             return keep
-    return None
+    return old
 
 
 def _check_name_length(p: Path) -> None:
