@@ -145,10 +145,10 @@ def _data_options(parser, source: str) -> None:
                         f"prefixes k, m, u, n, p); overrides [data] units of {source}")
     parser.add_argument("--columns", metavar="FILECOL=COL", action="append",
                         help="rename file columns, FILECOL=COL[,...] (e.g. u=v_in,y=displacement); for a CSV file "
-                        f"without a header, FILECOL is a 1-based position (2=t,3=displacement,4=v_in); replaces "
-                        f"[data] columns of {source} ('' for no renaming)")
+                        f"without a header, FILECOL is a 1-based position (2=t,3=displacement,4=v_in); '' for no "
+                        f"renaming; replaces [data] columns of {source}")
     parser.add_argument("--group", metavar="NAME", help="HDF5 group (or .mat struct) holding the columns, for the "
-                        f"HDF5 and .mat files; overrides [data] group of {source} ('' for the root)")
+                        f"HDF5 and .mat files; '' for the root; overrides [data] group of {source}")
     parser.add_argument("--sample-rate", metavar="HZ", type=float, help="sampling rate of files without a t column")
     parser.add_argument("--ignore-extra", action="store_true", help="skip columns that are not t, v_in or a channel")
 
