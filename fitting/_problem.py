@@ -60,19 +60,32 @@ def free_mask(model, free=None):
     `free`: `None` — every inexact array leaf except the fields its blocks declare as settings with `pj.setting()`
     (the hysteresis operators' `smoothing`: a continuation setting, not a parameter); a callable `where(model)`
     returning the sub-trees to free (as for `eqx.tree_at`); or a sequence of path strings (see `parameter_paths`),
-    each naming a parameter or a whole block (`"hysteresis"`).
+    each naming a parameter or a whole block (`"hysteresis"`). A whole block frees its parameters, not its settings:
+    a setting is freed only when named itself (`"hysteresis.smoothing"`, `lambda m: m.hysteresis.smoothing`).
     """
     available = list(parameter_paths(model))
+    settings = [_path_string(path) for path in pj.setting_key_paths(model)]
+
+    def is_setting(p):
+        return any(_matches(p, s) for s in settings)
+
     if free is None:
-        settings = [_path_string(path) for path in pj.setting_key_paths(model)]
-        chosen = {p for p in available if not any(_matches(p, s) for s in settings)}
+        chosen = {p for p in available if not is_setting(p)}
     elif callable(free):
-        marker = jtu.tree_map(lambda x: False, model)
+        marker = jtu.tree_map(lambda x: 0, model)
+
+        def select(sub):  # 1: a parameter selected itself, 2: part of a selected block (whose settings stay fixed)
+            alone = _is_reparam(sub) or not isinstance(sub, eqx.Module | list | tuple | dict)
+            return jtu.tree_map(lambda _: 1 if alone else 2, sub)
+
         try:
-            marked = eqx.tree_at(free, marker, replace_fn=lambda sub: jtu.tree_map(lambda _: True, sub))
+            marked = eqx.tree_at(free, marker, replace_fn=select)
         except Exception as e:  # noqa: BLE001 - re-raised with the argument named
             raise PiezojaxValueError(f"`free`: the selector could not be applied to the model ({e})") from e
-        mask = jtu.tree_map(lambda m, x: m is True and eqx.is_inexact_array(x), marked, model)
+        mask = jtu.tree_map_with_path(
+            lambda path, m, x: (m == 1 or (m == 2 and not is_setting(_path_string(path)))) and eqx.is_inexact_array(x),
+            marked, model,
+        )
         if not any(jtu.tree_leaves(mask)):
             raise PiezojaxValueError("`free` selects no inexact array parameter: nothing to fit")
         return mask
@@ -83,7 +96,7 @@ def free_mask(model, free=None):
         for sel in free:
             if not isinstance(sel, str):
                 raise PiezojaxValueError(f"`free` entries must be parameter paths (str), got {sel!r}")
-            hits = [p for p in available if _matches(p, sel)]
+            hits = [p for p in available if _matches(p, sel) and (p == sel or not is_setting(p))]
             if not hits:
                 raise PiezojaxValueError(
                     f"`free`: no parameter {sel!r} in the model; available: {', '.join(available)}"

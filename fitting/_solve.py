@@ -18,7 +18,7 @@ import optimistix as optx
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._problem import Problem
+from ._problem import Problem, _matches, _path_string
 from ._results import FitResult, summarise
 from ._solver import (
     AbstractNormalSolver,
@@ -196,6 +196,12 @@ def solve(
     for s in levels:
         if s is not None and not (np.isfinite(s) and s >= 0):
             raise PiezojaxValueError(f"`smoothing` levels must be finite and >= 0, got {s}")
+    if smoothing is not None:
+        settings = [_path_string(path) for path in pj.setting_key_paths(problem.model)]
+        freed = [n for n in problem.parameter_names() if any(_matches(n, st) for st in settings)]
+        if freed:
+            raise PiezojaxValueError(f"`smoothing` levels set {freed[0]!r}, which `free` also fits: fix it (leave it "
+                                     "out of `free`) or give no levels")
     if starts is None:
         u = problem.u0[None]
     else:
@@ -213,50 +219,37 @@ def solve(
     t0 = time.perf_counter()
     frozen = problem.frozen
     per_start: list[list] = [[] for _ in range(u.shape[0])]
-    for s in levels:
-        if s is not None:
-            frozen = set_smoothing(frozen, s)
-        label = f"[smoothing {s:g}] " if s is not None else ""
-        level = problem.with_frozen(frozen)
-        runs = iterate(solver, level.core, u, max_steps=max_steps, meter=meter, label=label)
-        for i, run in enumerate(runs):
-            per_start[i].append((s, run))
-        u = jnp.stack([run.u for run in runs])
-        if any(run.verdict.code == "interrupted" for run in runs) or all(run.verdict.hard for run in runs):
-            break
+    level = problem
+    try:
+        for s in levels:
+            if s is not None:
+                frozen = set_smoothing(frozen, s)
+            label = f"[smoothing {s:g}] " if s is not None else ""
+            next_level = problem.with_frozen(frozen)
+            runs = iterate(solver, next_level.core, u, max_steps=max_steps, meter=meter, label=label)
+            level = next_level
+            for i, run in enumerate(runs):
+                per_start[i].append((s, run))
+            u = jnp.stack([run.u for run in runs])
+            if any(run.verdict.code == "interrupted" for run in runs) or all(run.verdict.hard for run in runs):
+                break
+    except KeyboardInterrupt:  # between the steps of two levels: the levels done so far are the result
+        if not per_start[0]:
+            raise  # no step taken yet: nothing to return but the start
+    # (`_start_verdict` calls a start interrupted whose levels stopped early)
     # past kinks: where a start's steps stopped although the cost still falls along a probed direction by more than
     # the gtol test allows (the exact operators are piecewise smooth, and a joint step can keep crossing a kink), go
     # to the lowest point along that direction and iterate again, at most `kink_restarts` times per start; a restart
     # is kept only if it converges at a lower cost
-    interrupted = any(run.verdict.code == "interrupted" for runs_i in per_start for _, run in runs_i)
+    interrupted = any(run.verdict.code == "interrupted" for runs_i in per_start for _, run in runs_i) or any(
+        len(runs_i) < len(levels) for runs_i in per_start)
     kink_gain: list[float | None] = [None] * u.shape[0]  # relative decrease by the last restart (0: none)
-    for i in range(u.shape[0]):
-        if interrupted or any(run.verdict.hard for _, run in per_start[i]):
-            continue
-        for _ in range(kink_restarts):
-            last = per_start[i][-1][1]
-            if not last.verdict.success:
-                break
-            lin = _linearisation(level, last)
-            last.linearisation = lin
-            nxt = descent_point(level, u[i], lin, gtol)  # None where u[i] is stationary by the gtol test
-            if nxt is None:
-                break
-            (run,) = iterate(solver, level.core, jnp.asarray(nxt, u.dtype)[None], max_steps=max_steps, meter=meter,
-                             label=f"{label}[past a kink] ")
-            if run.verdict.code == "interrupted":
-                interrupted = True
-                break
-            if not run.verdict.success:
-                break  # inconclusive: keep the earlier point and its verdict
-            if not run.history[-1] < last.history[-1]:
-                kink_gain[i] = 0.0
-                break
-            kink_gain[i] = (last.history[-1] - run.history[-1]) / last.history[-1]
-            per_start[i].append((levels[-1], run))
-            u = u.at[i].set(run.u)
-        if interrupted:
-            break
+    try:
+        _past_kinks(solver, level, per_start, kink_gain, interrupted=interrupted, kink_restarts=kink_restarts,
+                    max_steps=max_steps, meter=meter, gtol=gtol, label=label, last_level=levels[-1])
+    except KeyboardInterrupt:
+        pass  # a restart is only an attempt to improve: the points reached so far stand
+    u = jnp.stack([runs_i[-1][1].u for runs_i in per_start])
     seconds = time.perf_counter() - t0
     verdicts = [_start_verdict(runs, len(levels)) for runs in per_start]
     costs = np.array([runs[-1][1].history[-1] for runs in per_start])
@@ -264,10 +257,19 @@ def solve(
                         [v.hard for v in verdicts]))
     best = int(order[0])  # the lowest cost (a start stopped by max_steps below a converged one fits better)
     runs = per_start[best]
-    lin = _linearisation(level, runs[-1][1])
     history = [c for _, r in runs for c in r.history]
-    verdict = stationarity_verdict(level, u[best], lin, verdicts[best], initial_cost=history[0], gtol=gtol,
-                                   kink_gain=kink_gain[best])
+    try:
+        lin = _linearisation(level, runs[-1][1])
+        verdict = stationarity_verdict(level, u[best], lin, verdicts[best], initial_cost=history[0], gtol=gtol,
+                                       kink_gain=kink_gain[best])
+    except KeyboardInterrupt:
+        # while the result's linearisation was formed: the point stands, without standard errors
+        r = level.residuals(u[best])
+        p = u.shape[1]
+        lin = Linearisation(r, 0.5 * jnp.sum(r**2), jnp.full((p,), jnp.nan, r.dtype),
+                            jnp.full((p, p), jnp.nan, r.dtype))
+        verdict = Verdict("interrupted", "interrupted by the user (Ctrl-C) after the steps, while the standard "
+                                         "errors were computed (not computed)")
     table = None
     if starts is not None:
         verdicts[best] = verdict
@@ -289,6 +291,37 @@ def solve(
     if throw and not result.success:
         raise FitError(result)
     return result
+
+
+def _past_kinks(solver, level, per_start, kink_gain, *, interrupted, kink_restarts, max_steps, meter, gtol, label,
+                last_level) -> None:
+    """The restarts past kinks of `solve`, appending each kept restart's run to its start's `per_start` list."""
+    for i in range(len(per_start)):
+        if interrupted or any(run.verdict.hard for _, run in per_start[i]):
+            continue
+        for _ in range(kink_restarts):
+            last = per_start[i][-1][1]
+            if not last.verdict.success:
+                break
+            lin = _linearisation(level, last)
+            last.linearisation = lin
+            nxt = descent_point(level, last.u, lin, gtol)  # None where it is stationary by the gtol test
+            if nxt is None:
+                break
+            (run,) = iterate(solver, level.core, jnp.asarray(nxt, last.u.dtype)[None], max_steps=max_steps, meter=meter,
+                             label=f"{label}[past a kink] ")
+            if run.verdict.code == "interrupted":
+                interrupted = True
+                break
+            if not run.verdict.success:
+                break  # inconclusive: keep the earlier point and its verdict
+            if not run.history[-1] < last.history[-1]:
+                kink_gain[i] = 0.0
+                break
+            kink_gain[i] = (last.history[-1] - run.history[-1]) / last.history[-1]
+            per_start[i].append((last_level, run))
+        if interrupted:
+            break
 
 
 def fit(

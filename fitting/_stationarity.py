@@ -101,7 +101,9 @@ def max_gradient_cosine(r, jtr, jtj) -> float:
     rnorm = np.sqrt(np.sum(r**2))
     with np.errstate(invalid="ignore", divide="ignore"):
         cosines = np.abs(jtr) / (col_norms * rnorm)
-    return float(np.nanmax(cosines)) if cosines.size and rnorm > 0 else 0.0
+    if not (cosines.size and rnorm > 0):
+        return 0.0
+    return float(np.nanmax(cosines)) if np.any(~np.isnan(cosines)) else float("nan")  # nan: no Jacobian
 
 
 

@@ -304,6 +304,47 @@ def _recover(data, **kw):
                        progress=False, **kw)
 
 
+def test_ctrl_c_outside_the_steps_keeps_the_fit(data, monkeypatch):
+    """Ctrl-C between two smoothing levels, or while the result's linearisation is formed, returns the fit so far
+    (code "interrupted"), as one during the steps does."""
+    import fitting._solve as solve_module
+
+    real_iterate, calls = solve_module.iterate, []
+
+    def interrupted_at_the_second_level(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_iterate(*args, **kwargs)
+
+    monkeypatch.setattr(solve_module, "iterate", interrupted_at_the_second_level)
+    res = _recover(data, smoothing=(0.05, 0.0), max_steps=5)
+    assert res.code == "interrupted" and not res.success and len(res.levels) == 1
+    assert np.all(np.isfinite(res.values)) and set(res.std_error_status) == {"finite"}
+    monkeypatch.setattr(solve_module, "iterate", real_iterate)
+
+    def no_linearisation(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(solve_module, "_linearisation", no_linearisation)
+    res = _recover(data, max_steps=5)
+    assert res.code == "interrupted" and "after the steps" in res.reason
+    assert set(res.std_error_status) == {"not computed"} and np.all(np.isfinite(res.values))
+    assert np.isfinite(res.cost) and np.isfinite(next(iter(res.metrics.values()))["displacement"]["rmse"])
+
+
+def test_a_block_frees_its_parameters_not_its_settings(data):
+    model = eqx.tree_at(lambda m: m.hysteresis.smoothing, _model(), jnp.asarray(0.1))
+    names = fitting.Problem(model, data, free=["hysteresis"]).parameter_names()
+    assert names and not any("smoothing" in n for n in names)
+    names = fitting.Problem(model, data, free=lambda m: m.hysteresis).parameter_names()
+    assert names and not any("smoothing" in n for n in names)
+    assert fitting.Problem(model, data, free=lambda m: m.hysteresis.smoothing).parameter_names() == [
+        "hysteresis.smoothing"]
+    with pytest.raises(PiezojaxValueError, match="`smoothing` levels set 'hysteresis.smoothing', which `free`"):
+        fitting.fit(model, data, free=["hysteresis.smoothing", "hysteresis.w0"], smoothing=(0.05, 0.0))
+
+
 def test_fit_recovers_and_reports(data):
     res = _recover(data)
     assert res.success, res.reason
