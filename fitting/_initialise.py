@@ -356,7 +356,8 @@ def cold_start_actuator(
       of each record's when the records are longer; the plays, lags and filters still run over whole records (they
       carry the history). A 1e6-sample record starts in seconds and a few hundred MB; `None`: every sample.
 
-    **Returns:** a `pj.Actuator`.
+    **Returns:** a `pj.Actuator`, reparametrised (`constrained=True`: pass it to `fitting.fit`; simulate
+    `pj.unwrap(init)`).
 
     ```python
     init = fitting.cold_start_actuator(dataset, n_plays=6, creep_order=2)

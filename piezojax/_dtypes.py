@@ -50,6 +50,17 @@ def cast_module(module: eqx.Module, dtype) -> eqx.Module:
 
 
 def module_float_dtype(module: eqx.Module, *extra: ArrayLike):
-    """The common floating dtype of a module's array leaves and `extra` arrays."""
+    """The common floating dtype of a module's array leaves and `extra` arrays. A module holding reparametrised
+    leaves (`pj.constrain`'s wrappers) cannot compute: `PiezojaxValueError` saying to `pj.unwrap` it."""
+    from ._checks import PiezojaxValueError
+    from ._parametrisation import AbstractReparam
+
+    wrapped = [x for x in jtu.tree_leaves(module, is_leaf=lambda x: isinstance(x, AbstractReparam))
+               if isinstance(x, AbstractReparam)]
+    if wrapped:
+        raise PiezojaxValueError(
+            f"{type(module).__name__} holds reparametrised parameters ({type(wrapped[0]).__name__}, from "
+            "`pj.constrain`): compute with `pj.unwrap(model)` (a fit's `result.model` is unwrapped already)"
+        )
     leaves = [x for x in jtu.tree_leaves(module) if eqx.is_array(x)]
     return common_float_dtype(*leaves, *extra)

@@ -83,3 +83,11 @@ def test_constrain_unwrap_and_gradient_through_softplus():
     expected = jnp.array([3.0, 2.0]) * sig(params.thresholds.raw)  # d/d gap_j = sum_{i>=j} w_i
     np.testing.assert_allclose(g.thresholds.raw, expected, rtol=1e-10)
     jax.jit(pj.unwrap)(params)  # usable under jit
+
+
+def test_a_reparametrised_model_asks_to_be_unwrapped():
+    model = pj.constrain(pj.Actuator(pj.PrandtlIshlinskii(jnp.ones(3), jnp.array([1.0, 2.0, 3.0]), w0=1.0)),
+                         lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+    with pytest.raises(pj.PiezojaxValueError, match=r"Actuator holds reparametrised .*OrderedPositive.*pj.unwrap"):
+        model.simulate(jnp.ones(10), 1e-3)
+    assert jnp.all(jnp.isfinite(pj.unwrap(model).simulate(jnp.ones(10), 1e-3).displacement))
