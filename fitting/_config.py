@@ -476,6 +476,9 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     model = pj.unwrap(cfg.build(dataset))
     ```
     """
+    if not isinstance(text, str):
+        raise PiezojaxValueError(f"{source}: `text` must be the TOML text (a str; read a file with "
+                                 f"`fitting.load_config`), got {type(text).__name__}")
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

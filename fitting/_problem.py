@@ -378,6 +378,13 @@ def channel_weights(experiments, targets: Sequence[str], weights) -> dict[str, f
     the channel's range over all the experiments that have it; `"noise"` — one over its estimated noise level
     (`estimate_noise_std`, root mean square over the experiments); or a mapping with an entry for every target."""
     out = {}
+    if isinstance(weights, Mapping):
+        from ._data import CHANNELS
+
+        stray = [k for k in weights if k not in CHANNELS]  # a misspelt channel (another channel's is not used)
+        if stray:
+            raise PiezojaxValueError(f"`weights` has an entry for {stray[0]!r}, which is no channel (the channels: "
+                                     f"{', '.join(CHANNELS)}; the targets: {', '.join(targets)})")
     for c in targets:
         ys = [np.asarray(exp.channels[c]) for exp in experiments if exp.has(c)]
         if isinstance(weights, Mapping):
@@ -412,7 +419,7 @@ class Problem:
     **Arguments:**
 
     - `model`: any piezojax model (an equinox Module), possibly with reparametrised leaves (`pj.Positive`, ...).
-    - `dataset`: a `fitting.Dataset` (or a sequence of `fitting.Experiment`).
+    - `dataset`: a `fitting.Dataset` (or one `fitting.Experiment`, or a sequence of them).
     - `predictor`: a `fitting.Predictor` (default: `default_predictor(model)`).
     - `targets`: channels to fit (default: every predicted channel the data contain, except the predictor's inputs).
       Every experiment must measure at least one of them (`PiezojaxValueError` naming it otherwise: it would add
@@ -445,9 +452,11 @@ class Problem:
         scales: Array | str = "jacobian",
         jacobian_chunk: int | None = None,
     ):
-        from ._data import Dataset
+        from ._data import Dataset, Experiment
 
-        if not isinstance(dataset, Dataset):
+        if isinstance(dataset, Experiment):
+            dataset = Dataset([dataset])
+        elif not isinstance(dataset, Dataset):
             dataset = Dataset(list(dataset))
         if len(dataset) == 0:
             raise PiezojaxValueError("`dataset` is empty")

@@ -118,6 +118,7 @@ class FitResult:
             },
             "correlation": np.asarray(self.correlation).tolist(),
             "correlation_names": list(self.parameter_names),  # its rows and columns, as in `parameters`
+            "precision": str(np.asarray(self.u).dtype),  # float32: JAX's 64-bit mode was off (7 digits)
             "metrics": self.metrics,
             "history": self.history,
             "history_steps": self.history_steps,
@@ -131,6 +132,9 @@ class FitResult:
             f"  steps {self.steps} ({self.accepted_steps} accepted), cost {self.initial_cost:.6e} -> "
             f"{self.cost:.6e}, {self.seconds:.1f} s, {self.num_residuals} residuals, {self.num_params} parameters",
         ]
+        if np.asarray(self.u).dtype != np.float64:
+            lines.append(f"  computed in {np.asarray(self.u).dtype} (JAX's 64-bit mode off): costs and standard errors "
+                         "are good to about 7 digits at best")
         if self.starts:
             ok = sum(st["success"] for st in self.starts)
             lines.append(f"  multi-start: {len(self.starts)} starts, {ok} converged; final costs "

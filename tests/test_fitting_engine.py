@@ -280,6 +280,11 @@ def test_bad_input_errors(data):
         fitting.Problem(model, only_v)
     with pytest.raises(PiezojaxValueError, match="does not predict 'force'"):
         fitting.Problem(model, data, targets=["force"])
+    assert fitting.Problem(model, data[0]).parameter_names() == fitting.Problem(model, data).parameter_names()
+    with pytest.raises(PiezojaxValueError, match="`weights` has an entry for 'displacment', which is no channel"):
+        fitting.Problem(model, data, weights={"displacement": 1.0, "displacment": 1.0})
+    with pytest.raises(PiezojaxValueError, match="`text` must be the TOML text"):
+        fitting.parse_config({"hysteresis": {"kind": "prandtl_ishlinskii"}})
     with pytest.raises(PiezojaxValueError, match="experiment 'x' has none of the target channels"):
         fitting.Problem(model, fitting.Dataset([*data, *only_v]))
     obs = pj.IvanBench().observer()
@@ -427,6 +432,7 @@ def test_save_load_atomic(data, tmp_path, monkeypatch):
     assert summary["success"] and summary["note"] == "test"
     assert list(summary["parameters"]) == summary["correlation_names"] == list(res.parameter_names)
     assert np.shape(summary["correlation"]) == (len(res.parameter_names),) * 2
+    assert summary["precision"] == "float64" and "64-bit mode off" not in res.report()
     assert (out / "report.txt").read_text().startswith("fit converged")
     assert list(out.glob("timeseries_*.png")) and list(out.glob("loops_*.png"))
     loaded = fitting.load_model(out, like=_model())

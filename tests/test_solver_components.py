@@ -196,6 +196,7 @@ def test_fit_in_single_precision_warns(tmp_path):
         "hits = [w for w in caught if issubclass(w.category, fitting.PrecisionWarning)]\n"
         "assert len(hits) == 1 and 'float32' in str(hits[0].message), [str(w.message) for w in caught]\n"
         "assert hits[0].filename == __file__, hits[0].filename\n"
+        "assert res.summary()['precision'] == 'float32' and '64-bit mode off' in res.report()\n"
         "print('ok', res.model.hysteresis.w0.dtype)\n")
     env = {k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
