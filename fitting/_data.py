@@ -135,6 +135,11 @@ SUPPORTED_SUFFIXES: tuple[str, ...] = (".csv", ".npz", ".h5", ".hdf5", ".mat")
 UNGROUPED_SUFFIXES = (".csv", ".npz")
 """The data formats without groups (read whole): a `group` concerns the others, HDF5 and `.mat`."""
 
+
+def listed_files(paths: Sequence) -> str:
+    """The first three of `paths` for a message: `'a.csv', 'b.csv', 'c.csv', …`."""
+    return ", ".join(repr(str(p)) for p in paths[:3]) + (", …" if len(paths) > 3 else "")
+
 FILE_MARKER = "piezojax_output"
 """Name under which `save_experiment(..., marker=...)` records the piezojax command that wrote a file (a variable in
 NPZ and .mat files, a root attribute in HDF5, the first comment line in CSV); readers skip it."""
@@ -987,9 +992,8 @@ class Dataset(Sequence):
         group = group or None  # "": the root
         grouped = [p.suffix.lower() not in UNGROUPED_SUFFIXES for p in ps]
         if group is not None and not any(grouped):
-            files = ", ".join(repr(str(p)) for p in ps[:3]) + (", …" if len(ps) > 3 else "")
             raise PiezojaxValueError(f"`group` ({group!r}) applies to HDF5 and .mat files, and none of the data files "
-                                     f"is one ({files})")
+                                     f"is one ({listed_files(ps)})")
         return cls(load_experiment(p, name=n, group=group if g else None, ignore_extra=ignore_extra, units=units,
                                    columns=columns, sample_rate=sample_rate) for p, n, g in zip(ps, names, grouped))
 

@@ -477,13 +477,12 @@ def _load_data(paths, settings: dict, group_option: str | None):
     group from CONFIG or the fit concerns the HDF5 and .mat files only, and is not used when `paths` has none."""
     import fitting
 
-    from ._data import UNGROUPED_SUFFIXES, UnitWarning
+    from ._data import UNGROUPED_SUFFIXES, UnitWarning, listed_files
 
     if settings.get("group") is not None and all(Path(p).suffix.lower() in UNGROUPED_SUFFIXES for p in paths):
         if group_option is not None:
-            files = ", ".join(repr(str(p)) for p in paths[:3]) + (", …" if len(paths) > 3 else "")
             raise _error(f"--group {group_option}: a group applies to HDF5 and .mat files, and none of the data "
-                         f"files is one ({files})")
+                         f"files is one ({listed_files(paths)})")
         settings = {k: v for k, v in settings.items() if k != "group"}
 
     with warnings.catch_warnings(record=True) as caught:

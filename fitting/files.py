@@ -467,7 +467,7 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
             )
         else:
             # what appeared meanwhile must qualify too; what a user added to it is dealt with after the swap
-            _check_replaceable_directory(p, True, kind, foreign=False)
+            _check_replaceable_directory(p, True, kind, look_for_added=False)
             if _exchange(tmp, p):
                 old = tmp  # after the exchange the temporary name holds the old directory
             else:
@@ -505,9 +505,9 @@ def _is_empty_directory(p: Path) -> bool:
 
 
 def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True", *,
-                                 foreign: bool = True) -> None:
+                                 look_for_added: bool = True) -> None:
     """Refuse, before any work, an output directory that must not be created or replaced (see `atomic_directory`);
-    `option` is how the caller's user asks to overwrite (`"--overwrite"` on the command line); `foreign=False`:
+    `option` is how the caller's user asks to overwrite (`"--overwrite"` on the command line); `look_for_added=False`:
     do not look for what the marker does not list."""
     why = _protected(p)
     if why is not None:
@@ -522,23 +522,23 @@ def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opt
         if not overwrite:
             raise PiezojaxValueError(f"output folder {str(p)!r} already exists; pass {option} to replace it")
         return
+    refusing = f"refusing to replace {str(p)!r}{'' if overwrite else ', which already exists'}"
     found = read_marker(p)
     if found != kind:
         held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
         raise PiezojaxValueError(
-            f"refusing to replace {str(p)!r}{'' if overwrite else ', which already exists'}: it {held}, and {option} "
+            f"{refusing}: it {held}, and {option} "
             f"replaces only the output of an earlier `piezojax {kind}` (a folder with the marker file {MARKER}); "
             "remove it yourself or choose another output folder"
         )
     try:
-        foreign = _foreign_entries(p) if foreign else None
+        added = _foreign_entries(p) if look_for_added else None
     except PiezojaxValueError as e:
-        raise PiezojaxValueError(f"refusing to replace {str(p)!r}: {e}; remove the folder yourself or choose another "
-                                 "output folder") from e
-    if foreign:
-        shown = ", ".join(repr(e) for e in foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise PiezojaxValueError(f"{refusing}: {e}; remove the folder yourself or choose another output folder") from e
+    if added:
+        shown = ", ".join(repr(e) for e in added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
         raise PiezojaxValueError(
-            f"refusing to replace {str(p)!r}{'' if overwrite else ', which already exists'}: it holds what "
+            f"{refusing}: it holds what "
             f"`piezojax {kind}` did not write there ({shown}), which {option} would delete; move that out of the "
             "folder, or choose another output folder"
         )
