@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _jaxpr_helpers import loop_under_cond
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -197,6 +198,33 @@ def test_grad_of_scalar_loss_vmap_jit_float32():
     y32 = op32(batch[0].astype(jnp.float32))
     assert y32.dtype == jnp.float32 and op32.w0.dtype == jnp.float32
     np.testing.assert_allclose(y32, out[0], atol=1e-5)
+
+
+def test_stacked_operators_keep_one_loop_and_a_mixed_stack_is_each_operators_own():
+    """Under `vmap` over stacked operators (a fleet), the choice between the exact and the general loop stays a
+    `cond` while every smoothing is 0 (a mapped predicate ran the general loop too: 4.4x the simulation of a stacked
+    model on 2 cores); a stack mixing smoothings runs the general loop, each operator's values and derivatives."""
+    w = jnp.array([[1.0, 0.5, 0.3], [0.8, 0.6, 0.2]])
+    r = jnp.array([0.0, 0.4, 0.9])
+    v = jnp.asarray(2 * np.sin(np.linspace(0, 9, N)))
+
+    def out(w, s):
+        return pj.PrandtlIshlinskii(w, r, 0.2, s)(v)
+
+    stack = jax.jit(jax.vmap(out))
+    assert loop_under_cond(jax.make_jaxpr(jax.vmap(out))(w, jnp.zeros(2)))
+    jac_stack = jax.jit(jax.jacfwd(lambda w, s: jax.vmap(out)(w, s), argnums=(0, 1)))
+    one = jax.jit(out)
+    jac_one = jax.jit(jax.jacfwd(out, argnums=(0, 1)))
+    for s in (jnp.array([0.0, 0.0]), jnp.array([0.0, 0.3])):
+        y = stack(w, s)
+        jw, js = jac_stack(w, s)  # (2, N, 2, 3) and (2, N, 2)
+        for i in range(2):
+            np.testing.assert_allclose(y[i], one(w[i], s[i]), rtol=1e-13, atol=1e-13)
+            jw_i, js_i = jac_one(w[i], s[i])
+            np.testing.assert_allclose(jw[i, :, i], jw_i, rtol=1e-12, atol=1e-13)
+            np.testing.assert_allclose(js[i, :, i], js_i, rtol=1e-12, atol=1e-13)
+        np.testing.assert_array_equal(jw[0, :, 1], 0.0)
 
 
 def test_bad_input():

@@ -24,6 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_batching import custom_vmap
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_positive, check_value, concrete_or_none
@@ -185,6 +186,33 @@ def stop_update(z: Array, delta: Array, r: Array, smoothing: Array, exact: bool 
     return play_step(z, delta, r, smoothing)
 
 
+@custom_vmap
+def _for_every_mapped(flag: Array) -> Array:
+    """`flag` itself; under `vmap` with `flag` mapped, whether it holds for every mapped element, unmapped (through
+    nested maps, axis by axis)."""
+    return flag
+
+
+@_for_every_mapped.def_vmap
+def _for_every_mapped_rule(axis_size, in_batched, flag):
+    if in_batched[0]:
+        return _for_every_mapped(jnp.all(flag, axis=0)), False
+    return _for_every_mapped(flag), False
+
+
+def exact_everywhere(smoothing: Array) -> Array:
+    """The predicate of the `lax.cond` between an operator's exact and general (smooth) loops: `smoothing == 0`, and
+    under `vmap` over operators with a mapped `smoothing` (a fleet of models stacked on an axis), whether it is 0 for
+    every one of them, unmapped.
+
+    Why: a `cond` on a mapped predicate runs both of its branches, here the general loop, sequential and an order of
+    magnitude slower per sample, beside the exact one: measured on 2 CPU cores, a PI + creep + resonance model
+    stacked 64 times simulated 4000 samples in 55 ms against 12.6 ms with one smoothing; on an H200 a fleet's
+    linearisation took 35x longer. A fleet mixing exact and smoothed operators runs the general loop for every one,
+    which is the exact operator (values and derivatives) wherever `smoothing` is 0 (`play_step`)."""
+    return _for_every_mapped(jax.lax.stop_gradient(smoothing) == 0)
+
+
 def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
     """`AbstractHysteresis._run` for operators with a `smoothing` field and a `_step(state, v, exact)` method.
 
@@ -201,7 +229,7 @@ def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
     s = concrete_or_none(op.smoothing)
     if s is not None:
         return run(bool(s == 0))
-    return jax.lax.cond(op.smoothing == 0, lambda: run(True), lambda: run(False))
+    return jax.lax.cond(exact_everywhere(op.smoothing), lambda: run(True), lambda: run(False))
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -275,7 +303,7 @@ def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_a
     """
     if exact is None:
         return jax.lax.cond(
-            smoothing == 0,
+            exact_everywhere(smoothing),
             lambda: sensitivity_scan(r, smoothing, v0, z0, signal, True, with_r, with_s, with_ab, with_play),
             lambda: sensitivity_scan(r, smoothing, v0, z0, signal, False, with_r, with_s, with_ab, with_play),
         )
@@ -365,7 +393,7 @@ def exact_flag(smoothing: Array) -> bool | None:
 def scan_exact_or_smooth(exact: bool | None, smoothing: Array, run):
     """`run(True)` or `run(False)`; for `exact=None` the choice is a `lax.cond` on `smoothing == 0`."""
     if exact is None:
-        return jax.lax.cond(smoothing == 0, lambda: run(True), lambda: run(False))
+        return jax.lax.cond(exact_everywhere(smoothing), lambda: run(True), lambda: run(False))
     return run(exact)
 
 

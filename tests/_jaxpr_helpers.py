@@ -1,0 +1,31 @@
+"""Reading the structure of a traced program (a `jax.make_jaxpr` result) in tests."""
+
+
+def _subjaxprs(params):
+    for value in params.values():
+        for x in value if isinstance(value, tuple | list) else (value,):
+            if hasattr(x, "eqns"):
+                yield x
+            elif hasattr(getattr(x, "jaxpr", None), "eqns"):
+                yield x.jaxpr
+
+
+def _contains(jaxpr, primitive: str) -> bool:
+    return any(e.primitive.name == primitive or any(_contains(j, primitive) for j in _subjaxprs(e.params))
+               for e in jaxpr.eqns)
+
+
+def loop_under_cond(closed) -> bool:
+    """Whether some `cond` of the program (at any depth) has a `scan` in one of its branches: a choice between two
+    loops that runs one of them. Under `vmap` a `cond` on a mapped predicate becomes a `select_n` of both branches'
+    results, its loops then outside any `cond`."""
+
+    def search(jaxpr):
+        for e in jaxpr.eqns:
+            if e.primitive.name == "cond" and any(_contains(b.jaxpr, "scan") for b in e.params["branches"]):
+                return True
+            if any(search(j) for j in _subjaxprs(e.params)):
+                return True
+        return False
+
+    return search(closed.jaxpr)
