@@ -189,9 +189,8 @@ class FleetResult:
 
     - `params`, `model`: the fitted models stacked on a leading fleet axis (with and without their
       reparametrisation wrappers); `model_at(i)` is actuator `i`'s model alone. Simulate the whole fleet with
-      `eqx.filter_vmap`. Settings are stacked too, the operators' `smoothing` among them, and a `lax.cond` on a
-      mapped value runs both branches (the exact operators' choice of form: the sequential smooth one as well);
-      where speed matters, set it back to its one value inside the mapped function (`eqx.tree_at`).
+      `eqx.filter_vmap` (settings such as the operators' `smoothing` are stacked too; the operators still run one
+      loop, see `piezojax._hysteresis.play.exact_everywhere`).
     - `success`, `codes`, `reasons`: verdicts (`fitting.RESULTS` names); `steps`, `accepted_steps`,
       `initial_cost`, `cost`: per actuator.
     - `rmse`: per target channel, each actuator's RMSE over all its records [channel units].
@@ -270,11 +269,11 @@ def _share_frozen(statics, arrays):
     (one copy, mapped over by no actuator): `(statics, arrays, shared)`, `shared` the moved leaves (one copy each, in
     the layout of `arrays.frozen`).
 
-    Why: a value the fleet stacks is batched under `vmap`, and a `lax.cond` on a batched predicate runs both of its
-    branches. The exact hysteresis operators choose between their exact and smooth forms by such a `cond` on the
-    `smoothing` setting (`piezojax._hysteresis.play`), so a stacked smoothing ran the sequential smooth branch as well
-    as the exact one: measured on an H200 (2e4 samples, 37 parameters), one actuator's linearisation took 77 ms
-    mapped over a fleet of one against 2.2 ms unmapped, and 2× as long on 2 CPU cores."""
+    Why: a value the fleet stacks is mapped under `vmap`, and so is everything computed from it, one copy per
+    actuator of work that is the same for all.
+    Before the operators kept their choice of loop unmapped (`exact_everywhere`), a stacked `smoothing` also ran
+    their sequential smooth loop: on an H200 one actuator's linearisation took 77 ms in a fleet of one against 2.2 ms
+    alone."""
 
     def equal_rows(x):
         if not eqx.is_array(x) or x.shape[0] < 1:
