@@ -29,3 +29,18 @@ def loop_under_cond(closed) -> bool:
         return False
 
     return search(closed.jaxpr)
+
+
+def runs_outside_cond(closed, primitive: str) -> bool:
+    """Whether `primitive` appears in the program (at any depth) outside every `cond` branch: it then runs whatever
+    the `cond`s choose."""
+
+    def search(jaxpr):
+        for e in jaxpr.eqns:
+            if e.primitive.name == primitive:
+                return True
+            if e.primitive.name != "cond" and any(search(j) for j in _subjaxprs(e.params)):
+                return True
+        return False
+
+    return search(closed.jaxpr)

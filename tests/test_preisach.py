@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _jaxpr_helpers import runs_outside_cond
 from hypothesis import given, settings, strategies as st
 
 import piezojax as pj
@@ -273,6 +274,27 @@ def test_vmap_float32_and_state_continuation():
     assert y32.dtype == jnp.float32
     y64 = run(grid(0.05, random_weights()), batch[0])
     assert np.allclose(np.asarray(y32), np.asarray(y64), atol=1e-5)
+
+
+def test_stacked_operators_skip_the_smooth_plays_and_a_mixed_stack_is_each_operators_own():
+    """Under `vmap` over stacked operators whose smoothings are all 0, the smooth plays (`tanh`) run only inside
+    the step's `cond` (a mapped predicate ran them at every sample); a stack mixing smoothings gives each
+    operator's own output and derivatives."""
+    mu = jnp.stack([random_weights(), 0.5 * random_weights()])
+    v = jnp.asarray(np.random.default_rng(2).uniform(-1.3, 1.3, LENGTH))
+
+    def out(mu, s):
+        return Preisach.uniform(-1.0, 1.0, LEVELS, mu=mu, smoothing=s)(v)
+
+    assert not runs_outside_cond(jax.make_jaxpr(jax.vmap(out))(mu, jnp.zeros(2)), "tanh")
+    stack = jax.jit(jax.vmap(out))
+    jac_stack = jax.jit(jax.jacfwd(jax.vmap(out)))
+    one, jac_one = jax.jit(out), jax.jit(jax.jacfwd(out))
+    for s in (jnp.array([0.0, 0.0]), jnp.array([0.0, 0.05]), jnp.array([0.05, 0.05])):
+        y, jac = stack(mu, s), jac_stack(mu, s)
+        for i in range(2):
+            np.testing.assert_allclose(y[i], one(mu[i], s[i]), rtol=1e-13, atol=1e-13)
+            np.testing.assert_allclose(jac[i, :, i], jac_one(mu[i], s[i]), rtol=1e-12, atol=1e-13)
 
 
 def test_bad_input():
