@@ -219,8 +219,9 @@ def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
     XLA:CPU compiles a scan whose body touches little memory (about 1 KiB) into one fused loop, and runs bigger bodies
     op by op, at a few hundred ns per op per sample: the smooth step falls in the second class, the exact one in the
     first. So the choice between the exact and the smooth loop is made outside the loop: in Python when `smoothing`
-    is concrete, else with `lax.cond` (a traced smoothing still does not recompile when it changes). The exact loop
-    is an order of magnitude faster per sample than the general step; `experiments.bench_hysteresis` measures it.
+    is concrete, else with `lax.cond` on `exact_everywhere` (a traced smoothing still does not recompile when it
+    changes). The exact loop is an order of magnitude faster per sample than the general step;
+    `experiments.bench_hysteresis` measures it.
     """
 
     def run(exact: bool):
@@ -294,7 +295,8 @@ def step_coefficients(z: Array, delta: Array, r: Array, smoothing: Array, exact:
 def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_ab, with_play):
     """Scan the stop cell with the sensitivities of its state to `r` and `s`.
 
-    `exact`: True, False, or None to choose with `lax.cond` on `smoothing == 0` (the exact operator has $S = 0$).
+    `exact`: True, False, or None to choose with `lax.cond` on `smoothing == 0` (`exact_everywhere`; the exact
+    operator has $S = 0$).
     Only primal values are computed here, so under `jax.jacfwd` nothing in this scan is batched.
 
     **Returns:** `(carry, rows, ab)`: `carry` the final packed state `[z, R?, S?]`, shape `(k, *n)`; `rows` per sample
@@ -391,7 +393,7 @@ def exact_flag(smoothing: Array) -> bool | None:
 
 
 def scan_exact_or_smooth(exact: bool | None, smoothing: Array, run):
-    """`run(True)` or `run(False)`; for `exact=None` the choice is a `lax.cond` on `smoothing == 0`."""
+    """`run(True)` or `run(False)`; for `exact=None` the choice is a `lax.cond` on `exact_everywhere(smoothing)`."""
     if exact is None:
         return jax.lax.cond(exact_everywhere(smoothing), lambda: run(True), lambda: run(False))
     return run(exact)
