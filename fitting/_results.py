@@ -41,7 +41,8 @@ class FitResult:
     - `model`: the fitted model, ready to use (reparametrisations unwrapped); `params`: the same with its
       reparametrisation wrappers (start a further fit from it).
     - `success`, `reason`, `code`: convergence verdict and why (`"successful"`, `"max_steps_reached"`, `"stalled"`,
-      `"interrupted"`, `"nonfinite_initial"`, ...); `steps`, `accepted_steps`, `initial_cost`, `cost`
+      `"interrupted"`, `"nonfinite_initial"`, ...); `steps`, `accepted_steps` (counted over every smoothing level
+      and every restart past a kink, so they can exceed `max_steps`, which bounds each), `initial_cost`, `cost`
       ($\\tfrac12\\|r\\|^2$ of the weighted residuals), `history` (the start's and every accepted cost),
       `history_steps` (the step at which each was reached, counted over all levels), `seconds`, `levels` (per
       smoothing level).
