@@ -640,10 +640,24 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     if free is not None:
         from ._problem import _matches, parameter_paths
 
-        paths = list(parameter_paths(cfg.build(None)))
+        values = parameter_paths(cfg.build(None))
+        paths = list(values)
+        # without a [charge] table the actuator's capacitance and coupling act on no predicted channel
+        no_charge = cfg.model_kind is ACTUATOR and cfg.charge is None
+        charge_only = ("capacitance", "coupling") if no_charge else ()
+        listed = [p for p in paths if p not in charge_only]
         for sel in free:
-            if not any(_matches(p, sel) for p in paths):
-                raise ft.error(f"unknown parameter path {sel!r}; the model's parameters: {', '.join(paths)}", "free")
+            matched = [p for p in paths if _matches(p, sel)]
+            if not matched:
+                raise ft.error(f"unknown parameter path {sel!r}; the model's parameters: {', '.join(listed)}", "free")
+            if sel in charge_only:
+                raise ft.error(f"{sel!r} acts only on the charge and current, which this model does not predict: add "
+                               "a [charge] table to fit it", "free")
+            if all(jnp.size(values[p]) == 0 for p in matched):
+                # e.g. `dynamics.poles` of a model with pole pairs only: nothing to fit
+                sized = ", ".join(p for p in listed if jnp.size(values[p]) > 0)
+                raise ft.error(f"{sel!r} has no entries in this model (its sizes come from the block tables); the "
+                               f"model's parameters with entries: {sized}", "free")
     return cfg
 
 

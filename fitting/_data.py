@@ -80,36 +80,48 @@ def parse_units(units, where: str = "`units`") -> dict[str, float]:
     return {str(k): unit_scale(str(k), v, where) for k, v in units.items()}
 
 
-# Plausible magnitudes for a piezoelectric actuator in SI units: (column, statistic, upper bound, hint).
+# Plausible magnitudes for a piezoelectric actuator in SI units: (column, statistic, upper bound, hint, the unit
+# to suggest).
 _PLAUSIBLE = (
-    ("v_in", "peak", 1e4, "V (kilovolts are the upper end of piezo drives; is it in mV?)"),
-    ("v_out", "peak", 1e4, "V (is it in mV?)"),
-    ("displacement", "range", 1e-2, "m (piezo strokes are below a few millimetres; is it in µm, nm or mm?)"),
-    ("force", "peak", 1e5, "N (is it in mN?)"),
-    ("charge", "peak", 1.0, "C (is it in µC or nC?)"),
-    ("current", "peak", 1e2, "A (is it in mA or µA?)"),
+    ("v_in", "peak", 1e4, "V (kilovolts are the upper end of piezo drives; is it in mV?)", "mV"),
+    ("v_out", "peak", 1e4, "V (is it in mV?)", "mV"),
+    ("displacement", "range", 1e-2, "m (piezo strokes are below a few millimetres; is it in µm, nm or mm?)", "um"),
+    ("force", "peak", 1e5, "N (is it in mN?)", "mN"),
+    ("charge", "peak", 1.0, "C (is it in µC or nC?)", "uC"),
+    ("current", "peak", 1e2, "A (is it in mA or µA?)", "mA"),
 )
 
 
-def plausibility_warnings(exp: "Experiment") -> list[str]:
+def plausibility_warnings(exp: "Experiment", units: Mapping[str, str] | None = None) -> list[str]:
     """Messages for columns of `exp` whose magnitude is implausible in SI units (a record in µm read as metres,
-    in mV read as volts, ...); empty if everything looks plausible."""
+    in mV read as volts, ...); empty if everything looks plausible. `units`: the units declared on loading (a
+    column with a declared unit is reported as such, not asked to declare one)."""
+    units = dict(units or {})
     out = []
-    for col, stat, bound, hint in _PLAUSIBLE:
+    for col, stat, bound, hint, suggest in _PLAUSIBLE:
         if col not in exp.columns():
             continue
         a = exp[col]
         value = float(np.ptp(a)) if stat == "range" else float(np.max(np.abs(a)))
-        if value > bound:
+        if value <= bound:
+            continue
+        if col in units:
+            out.append(f"{exp._label()}: column {col!r}, declared in {units[col]!r}, has a {stat} of {value:.4g} "
+                       f"{UNITS[col]} after conversion, implausible for a piezo record — check its declared unit")
+        else:
             out.append(
                 f"{exp._label()}: column {col!r} has a {stat} of {value:.4g} {hint} — declare the column's unit "
-                f"(e.g. units = {{{col} = \"u{UNITS[col]}\"}} in [data], or --units {col}=u{UNITS[col]})"
+                f"(e.g. units = {{{col} = \"{suggest}\"}} in [data], or --units {col}={suggest})"
             )
     if exp.dt < 1e-8 or exp.dt > 10.0:
-        out.append(
-            f"{exp._label()}: sampling step dt = {exp.dt:.4g} s is implausible for a piezo record (is 't' in ms or "
-            "µs? declare its unit, e.g. --units t=ms)"
-        )
+        if "t" in units:
+            out.append(f"{exp._label()}: sampling step dt = {exp.dt:.4g} s (t declared in {units['t']!r}) is "
+                       "implausible for a piezo record — check its declared unit")
+        else:
+            out.append(
+                f"{exp._label()}: sampling step dt = {exp.dt:.4g} s is implausible for a piezo record (is 't' in ms "
+                "or µs? declare its unit, e.g. --units t=ms)"
+            )
     return out
 
 MAX_MAGNITUDE = 1e30
@@ -592,6 +604,7 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
             raise PiezojaxValueError(
                 f"file {str(path)!r}: line {lineno} has {nfields(ln)} fields but the header names {width} columns"
             )
+    file_header = header  # numpy's error messages count the file's columns, not the ones read
     if usecols is not None:
         header = [header[j] for j in usecols]
     if not body:
@@ -600,6 +613,14 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
         values = np.loadtxt(io.StringIO("\n".join(ln for _, ln in body)), delimiter=delim, ndmin=2, dtype=np.float64,
                             usecols=usecols)
     except ValueError as e:
+        # numpy counts the rows it was given from 0 and the columns from 1: name the file's line and column instead
+        m = re.search(r"could not convert string '(.*)' to \w+ at row (\d+), column (\d+)", str(e))
+        if m and int(m.group(2)) < len(body) and 1 <= int(m.group(3)) <= len(file_header):
+            lineno, name = body[int(m.group(2))][0], file_header[int(m.group(3)) - 1]
+            where = f"field {name}" if name.isdigit() else f"column {name!r}"  # a file without a header row
+            raise PiezojaxValueError(
+                f"file {str(path)!r}: cannot parse numbers: line {lineno}, {where} holds {m.group(1)!r}"
+            ) from e
         raise PiezojaxValueError(f"file {str(path)!r}: cannot parse numbers ({e})") from e
     return {h: values[:, j] for j, h in enumerate(header)}
 
@@ -765,7 +786,7 @@ def load_experiment(
     except Exception as e:  # parsers raise anything (OSError, ValueError, zipfile.BadZipFile, struct.error, ...)
         raise PiezojaxValueError(f"file {str(p)!r}: cannot read it as {suffix} ({type(e).__name__}: {e})") from e
     exp = _columns_to_experiment(data, p, name, ignore_extra, units, columns, sample_rate)
-    for message in plausibility_warnings(exp):
+    for message in plausibility_warnings(exp, units):
         warnings.warn(message, UnitWarning, stacklevel=2)
     return exp
 

@@ -37,7 +37,8 @@ MIN_FIT_SAMPLES = 20
 the slowest block)."""
 
 _CONFIG_HELP = """\
-CONFIG is a TOML file naming the model blocks, optional initial values, and the fit options:
+CONFIG is a TOML file naming the model blocks, their parameter values (for `fit`: optional initial values; for
+`simulate`: every value), and the fit options:
 
   [hysteresis]  kind = "prandtl_ishlinskii" (plays = 10, weights, thresholds, w0)
                      | "play" (plays = 1, weights, thresholds: backlash, no linear term)
@@ -81,20 +82,21 @@ CONFIG is a TOML file naming the model blocks, optional initial values, and the 
 
 Sizes: plays, elements <= 100; Preisach levels <= 30; creep order, lags <= 10; Bouc-Wen substeps <= 64;
 max_steps <= 100000.
-Parameter values not given in CONFIG start from the data (`fit`: the joint cold start and simple rules, both fitted
-together, the lower cost kept), see the README ("Command line").
 Data files: .csv (header naming t, v_in and any of v_out, displacement, force, charge, current), .npz, .h5/.hdf5,
 .mat with the same names; SI units unless declared; uniform t in seconds.
 """
 
 _FIT_EXAMPLES = """\
+Parameter values not given in CONFIG start from the data (the joint cold start and simple rules, both fitted
+together, the lower cost kept), see the README ("Command line").
+
 examples:
   piezojax fit pi_creep.toml run1.csv run2.npz run3.h5 --out fits/pi_creep
   piezojax fit selfsensing.toml contact.mat --out fits/obs --overwrite --max-steps 50
 
 DIR receives result.json (metrics per experiment and channel, parameters with standard errors, convergence),
 model.eqx (the fitted parameters), config.toml (the configuration, to rebuild the model), report.txt and PNG
-figures. DIR appears complete or not at all.
+figures. DIR appears complete or not at all; an empty DIR is replaced like an absent one.
 --overwrite replaces only a folder written by an earlier `piezojax fit` (it holds a .piezojax marker) that holds
 nothing else, never the working directory, a folder holding an input or CONFIG, or anything else.
 exit status: 0 converged, 1 not converged (outputs written), 2 bad input, 3 internal error, 130 interrupted
@@ -142,7 +144,8 @@ def _data_options(parser, source: str) -> None:
     """The options that say how to read the data files (each overrides the `[data]` key of `source`)."""
     parser.add_argument("--units", metavar="COL=UNIT", action="append",
                         help="units of columns not in SI, COLUMN=UNIT[,...] (e.g. displacement=um,v_in=mV,t=ms; "
-                        f"prefixes k, m, u, n, p); overrides [data] units of {source}")
+                        f"prefixes k, m, u, n, p); adds to or overrides [data] units of {source}; '' for every "
+                        "column in SI")
     parser.add_argument("--columns", metavar="FILECOL=COL", action="append",
                         help="rename file columns, FILECOL=COL[,...] (e.g. u=v_in,y=displacement); for a CSV file "
                         f"without a header, FILECOL is a 1-based position (2=t,3=displacement,4=v_in); '' for no "
@@ -175,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("config", metavar="CONFIG", help="TOML model configuration")
     fit.add_argument("data", metavar="DATA", nargs="+", help="experiment files (.csv, .npz, .h5/.hdf5, .mat)")
-    fit.add_argument("--out", metavar="DIR", required=True, help="result folder to create (must not exist)")
+    fit.add_argument("--out", metavar="DIR", required=True,
+                     help="result folder to create (absent or empty; see --overwrite)")
     fit.add_argument("--overwrite", action="store_true",
                      help="replace DIR if it is the output of an earlier `piezojax fit` (atomically)")
     fit.add_argument("--max-steps", type=int, metavar="N", help="Levenberg–Marquardt steps per smoothing level "
@@ -400,13 +404,17 @@ def _data_settings(args, base: dict) -> dict:
     from ._data import parse_columns, parse_units
 
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
-    units = _pairs(args.units, "--units", "COLUMN=UNIT (e.g. displacement=um)")
+    # `--units ''`: every column in SI (no unit of the base kept); other --units add to or replace the base's
+    si = args.units is not None and not any(u.strip() for u in args.units)
+    units = {} if si else _pairs(args.units, "--units", "COLUMN=UNIT (e.g. displacement=um), or '' for SI")
     # `--columns ''`: no renaming; any other --columns replaces the whole mapping (its keys are the file's names)
     clear = args.columns is not None and not any(c.strip() for c in args.columns)
     columns = {} if clear else _pairs(args.columns, "--columns", "FILECOLUMN=COLUMN (e.g. u=v_in)")
     parse_units(units, "--units")
     parse_columns(columns, "--columns")
-    if units:
+    if si:
+        out["units"] = {}
+    elif units:
         out["units"] = {**out.get("units", {}), **units}
     if columns or clear:
         out["columns"] = columns
@@ -785,6 +793,9 @@ def _cmd_predict(args) -> int:
                         fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
     settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
+    if settings.get("units") and args.units is None:
+        shown = ",".join(f"{k}={v}" for k, v in settings["units"].items())
+        _info(f"reading the files in the fit's units ({shown}); --units '' reads them in SI")
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings, args.group)
         results, metrics = [], {}
@@ -887,10 +898,28 @@ def main(argv: list[str] | None = None, *, _restore_signals: bool = True) -> int
             return status
 
 
+def _joined_negative_values(argv: list[str]) -> list[str]:
+    """`--window -1:0.2` as `--window=-1:0.2`: argparse takes a value that starts with '-' and is not a plain
+    negative number for an option, so a window starting before t = 0 would need the `=` form."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else ""
+        negative = len(nxt) > 1 and nxt[0] == "-" and (nxt[1].isdigit() or nxt[1] in ".:")
+        if a in ("--window", "--score-from") and negative:
+            out.append(f"{a}={nxt}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def _main(argv) -> int:
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(_joined_negative_values(list(sys.argv[1:] if argv is None else argv)))
     except SystemExit as e:  # --help, --version, usage errors
         return int(e.code) if isinstance(e.code, int) else EXIT_ERROR
     commands = {"fit": _cmd_fit, "predict": _cmd_predict, "simulate": _cmd_simulate}

@@ -473,7 +473,13 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
             else:
                 old = Path(tempfile.mkdtemp(dir=p.parent, prefix=_temp_prefix(p.name) + "old-"))
                 os.rmdir(old)
-                os.rename(p, old)
+                try:
+                    os.rename(p, old)
+                except OSError as e:  # e.g. an immutable folder: nothing has moved
+                    raise PiezojaxValueError(
+                        f"cannot replace directory {str(p)!r}: {_describe_os_error(e)}; it was left as it was and "
+                        "this run's outputs were discarded"
+                    ) from e
                 try:
                     os.rename(tmp, p)
                 except BaseException:

@@ -388,6 +388,15 @@ def test_ctrl_c_leaves_no_folder_or_a_complete_one(work):
     ('[hysteresis]\nkind = "prandtl_ishlinskii"\n[state]\noffset = "yes"\n', "[state] offset: must be true"),
     ('[hysteresis]\nkind = "prandtl_ishlinskii"\n[state]\nremanence = 1.0\n',
      "[state]: unknown key 'remanence'; allowed keys: offset, prehistory"),
+    ('[dynamics]\norder = 2\n[fit]\nfree = ["dynamics.poles"]\n',
+     "[fit] free: 'dynamics.poles' has no entries in this model (its sizes come from the block tables); the model's "
+     "parameters with entries: dynamics.gain, dynamics.omega, dynamics.zeta, offset"),
+    ('[dynamics]\norder = 2\n[fit]\nfree = ["dynamics.zeta", "capacitance"]\n',
+     "[fit] free: 'capacitance' acts only on the charge and current, which this model does not predict: add a "
+     "[charge] table"),
+    ('[dynamics]\norder = 2\n[fit]\nfree = ["dynamics.bogus"]\n',
+     "[fit] free: unknown parameter path 'dynamics.bogus'; the model's parameters: dynamics.gain, dynamics.omega, "
+     "dynamics.zeta, dynamics.poles, dynamics.zeros, dynamics.zero_omega, dynamics.zero_zeta, offset"),
 ])
 def test_config_errors_name_table_key_and_allowed_values(text, expected):
     with pytest.raises(pj.PiezojaxValueError) as e:

@@ -263,7 +263,8 @@ def test_csv_comments_blank_lines_and_extra_columns(tmp_path):
         ("v_in,force\n0,1\n1,2\n", r"required column\(s\) \['t'\] missing"),
         ("t,v_in,force,flux\n0,1,2,3\n1,2,3,4\n", r"unknown column\(s\) \['flux'\]"),
         ("t,v_in,force\n0,1,2\n1,2,nan\n2,3,4\n", r"column 'force' has a non-finite value \(nan\) at row 1"),
-        ("t,v_in,force\n0,1,2\n1,2,\n2,3,4\n", r"cannot parse numbers"),
+        ("t,v_in,force\n0,1,2\n1,2,\n2,3,4\n", r"cannot parse numbers: line 3, column 'force' holds ''"),
+        ("# note\nt,v_in,force\n0,1,2\n\n1,x1,3\n", r"cannot parse numbers: line 5, column 'v_in' holds 'x1'"),
         ("t,v_in,force\n0,1,2\n1,2\n", r"line 3 has 2 fields but the header names 3"),
         ("t,v_in\n0,1\n1,2\n3,3\n", r"column 't' is not uniformly sampled"),
         ("t,v_in\n0,1\n", r"column 't' has 1 sample"),
@@ -622,6 +623,22 @@ def test_atomic_directory_overwrite_fallback_without_exchange(tmp_path, monkeypa
     with pytest.raises(KeyboardInterrupt):
         with atomic_directory(out, overwrite=True) as d:
             (d / "newer.txt").write_text("newer")
+    monkeypatch.undo()
+    assert sorted(os.listdir(out)) == ["new.txt"]
+    assert _no_temp_files(tmp_path) == []
+
+    # A folder that cannot be moved (an immutable one): one message naming it, not the temporary path
+    def refused(src, dst):
+        if os.fspath(src) == os.fspath(out):
+            raise PermissionError(1, "Operation not permitted", str(src), None, str(dst))
+        return real_rename(src, dst)
+
+    monkeypatch.setattr(fio, "_exchange", lambda a, b: False)
+    monkeypatch.setattr(os, "rename", refused)
+    with pytest.raises(PiezojaxValueError, match=r"cannot replace directory '.*run': Operation not permitted; it "
+                       r"was left as it was and this run's outputs were discarded$"):
+        with atomic_directory(out, overwrite=True) as d:
+            (d / "newest.txt").write_text("newest")
     monkeypatch.undo()
     assert sorted(os.listdir(out)) == ["new.txt"]
     assert _no_temp_files(tmp_path) == []

@@ -352,6 +352,8 @@ CASES = {
     "--window not numbers": (_fit_opts("--window", "a:b"), 2, ["--window", "'a:b'"]),
     "--window empty": (_fit_opts("--window", "5:"), 2, ["--window 5:", "ok.csv", "t = 5 s to its end keeps 0 "
                                                         "sample(s)"]),
+    "--window before the record, negative": (_fit_opts("--window", "-5:-1"), 2, ["--window -5:-1", "ok.csv",
+                                                                                "keeps 0 sample(s)"]),
     "--max-steps above the bound": (_fit_opts("--max-steps", "100001"), 2, ["--max-steps", "<= 100000"]),
     "--units twice for a column": (_fit_opts("--units", "displacement=um,displacement=nm"), 2,
                                    ["--units", "'displacement' is given twice"]),
@@ -496,10 +498,20 @@ def test_numpy_savetxt_header_and_declared_units(bench, tmp_path, capsys):
                  "--no-figures", "--units", "displacement=um"]) in (0, 1)
     assert "warning" not in capsys.readouterr().err
     assert json.loads((out2 / "result.json").read_text())["warnings"] == []
-    # predict reads new files in the units the fit declared
+    # predict reads new files in the units the fit declared, and says so; `--units ''` reads them in SI
     assert main(["predict", str(out2), str(tmp_path / "micro.csv"), "--out", str(tmp_path / "p")]) == 0
+    assert "in the fit's units (t=ms,v_in=mV,displacement=um); --units '' reads them in SI" in capsys.readouterr().err
     pred = fitting.load_experiment(tmp_path / "p" / "micro.csv")
     np.testing.assert_allclose(pred.t, t, rtol=1e-15, atol=1e-18)
+    assert main(["predict", str(out2), str(tmp_path / "savetxt.csv"), "--out", str(tmp_path / "p_si"),
+                 "--units", ""]) == 0
+    assert "fit's units" not in capsys.readouterr().err
+    np.testing.assert_allclose(fitting.load_experiment(tmp_path / "p_si" / "savetxt.csv").t, t, rtol=1e-15)
+    # a declared unit that gives implausible values is named as declared; an undeclared one gets its likely unit
+    with pytest.warns(fitting._data.UnitWarning, match="'v_in', declared in 'kV', has a peak of .* check its"):
+        fitting.load_experiment(tmp_path / "micro.csv", units={"t": "ms", "v_in": "kV", "displacement": "um"})
+    with pytest.warns(fitting._data.UnitWarning, match=r"'v_in' has a peak of .* --units v_in=mV\)"):
+        fitting.load_experiment(tmp_path / "micro.csv", units={"t": "ms", "displacement": "um"})
 
 
 def test_overwrite_replaces_only_its_own_output(bench, tmp_path, capsys):
