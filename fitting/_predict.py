@@ -154,7 +154,15 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
 
     if not isinstance(experiment, Experiment):
         raise PiezojaxValueError(f"`experiment` must be a fitting.Experiment, got {type(experiment).__name__}")
-    history = (history,) if isinstance(history, Experiment) else tuple(history or ())
+    if history is None:
+        history = ()
+    elif isinstance(history, Experiment):
+        history = (history,)
+    elif isinstance(history, list | tuple):
+        history = tuple(history)
+    else:
+        raise PiezojaxValueError(f"`history` must be an Experiment or a list of Experiments (records run before "
+                                 f"`experiment`), got {type(history).__name__}")
     for i, h in enumerate(history):
         if not isinstance(h, Experiment):
             raise PiezojaxValueError(f"`history[{i}]` must be a fitting.Experiment, got {type(h).__name__}")

@@ -1,6 +1,6 @@
 """A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -457,6 +457,9 @@ class Problem:
         if isinstance(dataset, Experiment):
             dataset = Dataset([dataset])
         elif not isinstance(dataset, Dataset):
+            if isinstance(dataset, str | bytes) or not isinstance(dataset, Iterable):
+                raise PiezojaxValueError(f"`dataset` must be a fitting.Dataset, an Experiment or a list of "
+                                         f"Experiments, got {type(dataset).__name__}")
             dataset = Dataset(list(dataset))
         if len(dataset) == 0:
             raise PiezojaxValueError("`dataset` is empty")
@@ -478,6 +481,8 @@ class Problem:
                     f"it has: {', '.join(sorted(available)) or 'only t and v_in'}"
                 )
         else:
+            if isinstance(targets, str):  # one channel, not its letters
+                targets = [targets]
             targets = list(targets)
             for c in targets:
                 if c not in outputs:

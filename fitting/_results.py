@@ -170,10 +170,16 @@ class FitResult:
         experiments or one `Experiment`), each after the records of `history`, by `fitting.predict` (e.g. the
         training record before a held-out record that continues it; `check_finite` as there). Any record length
         works. `result.predict(result.dataset)` are the fitted records' predictions."""
-        from ._data import Experiment
+        from ._data import Dataset, Experiment
         from ._predict import predict
 
-        exps = [dataset] if isinstance(dataset, Experiment) else list(dataset)
+        if isinstance(dataset, Experiment):
+            exps = [dataset]
+        elif isinstance(dataset, Dataset | list | tuple):
+            exps = list(dataset)
+        else:
+            raise PiezojaxValueError(f"`dataset` must be a fitting.Dataset, an Experiment or a list of Experiments "
+                                     f"(e.g. fitting.Experiment.from_arrays(t, v_in)), got {type(dataset).__name__}")
         out = []
         for e in exps:
             preds = predict(self.model, e, predictor=self.predictor, history=history, check_finite=check_finite)

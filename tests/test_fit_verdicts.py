@@ -134,3 +134,23 @@ def test_dead_play_is_reported_at_its_bound():
     assert status["weights[1]"] == "at a bound"
     assert status["weights[0]"] == "finite" and status["w0"] == "finite"
     assert "(at its constraint's bound)" in result.report()
+
+
+def test_fit_and_predict_arguments_of_the_wrong_kind_are_named():
+    y = 1.5 * V - 0.7 * W
+    ds = _dataset(y)
+    kw = dict(predictor=_predictor(), free=["a", "c"], weights={"displacement": 1.0}, progress=False)
+    with pytest.raises(pj.PiezojaxValueError, match=r"`smoothing` must be a sequence of continuation levels .* got "
+                       r"0\.05"):
+        fitting.fit(_model(), ds, smoothing=0.05, **kw)
+    with pytest.raises(pj.PiezojaxValueError, match=r"`dataset` must be a fitting\.Dataset.* got NoneType"):
+        fitting.fit(_model(), None, **kw)
+    result = fitting.fit(_model(), ds, targets="displacement", max_steps=20, **kw)  # one channel, not its letters
+    assert result.targets == ("displacement",) and result.success
+    with pytest.raises(pj.PiezojaxValueError, match=r"`dataset` must be a fitting\.Dataset.* got ndarray"):
+        result.predict(np.zeros(5))
+    with pytest.raises(pj.PiezojaxValueError, match=r"`dataset` must be a fitting\.Dataset.* got NoneType"):
+        result.predict(None)
+    with pytest.raises(pj.PiezojaxValueError, match=r"`history` must be an Experiment or a list .* got ndarray"):
+        result.predict(ds[0], history=np.zeros(5))
+    np.testing.assert_allclose(result.predict(ds[0], history=None)[0]["displacement"], y, atol=1e-9)
