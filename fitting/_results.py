@@ -7,6 +7,7 @@ from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 
 import piezojax as pj
@@ -210,6 +211,7 @@ class FitResult:
         summary = self.summary()
         if extra:
             summary.update(extra)
+        summary["model_structure"] = model_structure(self.params)
         save_json(folder / "result.json", summary)
         (folder / "report.txt").write_text(self.report() + "\n")
         if figures:
@@ -244,8 +246,6 @@ def _at_bound(problem, u) -> np.ndarray:
     """Per free parameter: an entry of a leaf constrained away from zero (`pj.Positive`, `pj.OrderedPositive`,
     `pj.Fractions`, negative poles) pressed against that bound, i.e. within 1e-9 of the largest magnitude in its
     leaf of zero (a dead play weight, a vanished lag fraction)."""
-    import jax.tree_util as jtu
-
     from ._kinds import Negative
     from ._problem import _free_physical_tree, _is_reparam, _path_string
 
@@ -270,13 +270,41 @@ def _std_error_status(s) -> str:
     return "infinite" if np.isinf(s) else "not computed"
 
 
+def model_structure(params) -> list[str]:
+    """`"path: kind"` for every parameter leaf of `params`, the kind a reparametrisation's class name (e.g.
+    `"hysteresis.thresholds: OrderedPositive"`) or `"array"`: what `load_model` checks `like` against, since the
+    saved leaves alone cannot tell a constrained model's internal values from physical ones."""
+    from ._problem import _is_reparam, _path_string
+
+    out = []
+    for path, leaf in jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]:
+        if _is_reparam(leaf):
+            out.append(f"{_path_string(path)}: {type(leaf).__name__}")
+        elif eqx.is_array(leaf):
+            out.append(f"{_path_string(path)}: array")
+    return out
+
+
 def load_model(path, like):
     """Load the fitted (reparametrised) parameters saved by `FitResult.save` into a model of the structure of
-    `like` (e.g. the initial model), and return the unwrapped model."""
+    `like` (the model the fit started from, with the same reparametrisations: `pj.OrderedPositive`, ...), and
+    return the unwrapped model. A `like` whose parameters are reparametrised differently from the saved ones is an
+    error (when the folder's `result.json` records them), not a silent reading of internal values as physical."""
     path = Path(path)
     f = path / "model.eqx" if path.is_dir() else path
     if not f.exists():
         raise PiezojaxValueError(f"no saved model at {f}")
+    try:
+        saved = json.loads((f.parent / "result.json").read_text(encoding="utf-8")).get("model_structure")
+    except (OSError, ValueError, AttributeError):
+        saved = None  # a model file on its own, or saved before the structure was recorded
+    if isinstance(saved, list):
+        given = model_structure(like)
+        if saved != given:
+            diff = next((f"saved {a!r}, `like` has {b!r}" for a, b in zip(saved, given) if a != b),
+                        f"{len(saved)} saved parameter leaves, {len(given)} in `like`")
+            raise PiezojaxValueError(f"{f}: `like` does not have the structure of the saved model ({diff}); pass "
+                                     "the model the fit started from, with the same reparametrisations")
     try:
         params = eqx.tree_deserialise_leaves(f, like)
     except Exception as e:  # noqa: BLE001

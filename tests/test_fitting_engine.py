@@ -439,6 +439,12 @@ def test_save_load_atomic(data, tmp_path, monkeypatch):
     v = data[0].v_in
     np.testing.assert_array_equal(np.asarray(loaded.simulate(v, DT).displacement),
                                   np.asarray(res.model.simulate(v, DT).displacement))
+    # a `like` reparametrised otherwise has leaves of the same shapes: refused, not read as physical values
+    other = eqx.tree_at(lambda m: m.hysteresis.thresholds, _model(),
+                        pj.OrderedPositive.from_value(jnp.array([10.0, 30.0])))
+    with pytest.raises(PiezojaxValueError, match=r"`like` does not have the structure of the saved model \(saved "
+                       r"'hysteresis.thresholds: array', `like` has 'hysteresis.thresholds: OrderedPositive'\)"):
+        fitting.load_model(out, like=other)
     with pytest.raises(PiezojaxValueError):
         res.save(tmp_path / "fit")  # exists
     # interrupted while writing the figures: nothing appears
