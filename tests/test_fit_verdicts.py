@@ -154,3 +154,38 @@ def test_fit_and_predict_arguments_of_the_wrong_kind_are_named():
     with pytest.raises(pj.PiezojaxValueError, match=r"`history` must be an Experiment or a list .* got ndarray"):
         result.predict(ds[0], history=np.zeros(5))
     np.testing.assert_allclose(result.predict(ds[0], history=None)[0]["displacement"], y, atol=1e-9)
+
+
+def test_a_whole_scale_redundancy_leaves_every_parameter_it_moves_undetermined():
+    """Hysteresis, creep and the dynamics' gain all free: multiplying every play weight, w0 and the creep's
+    compliance by c and dividing the gain by c leaves the output unchanged, so all of them are undetermined — the
+    small weights included (they move by the same relative amount) — while the time constant and the resonance
+    keep the standard errors of the fit without the redundancy (the gain fixed)."""
+    dt = 1e-4
+    t = np.arange(3000) * dt
+    v = 60 * (1 + np.sin(2 * np.pi * 5 * t) * np.exp(-3 * t)) + 20 * np.sin(2 * np.pi * 17 * t)
+
+    def act(w, w0, k, tau, gain, omega, zeta):
+        return pj.Actuator(pj.PrandtlIshlinskii(jnp.array(w), jnp.array([10.0, 40.0, 70.0]), w0=w0),
+                           pj.KelvinVoigtCreep(jnp.array([k]), jnp.array([tau]), k0=None),
+                           pj.StableTransferFunction(gain, omega=jnp.array([omega]), zeta=jnp.array([zeta])))
+
+    truth = act([0.02, 0.01, 0.002], 0.05, 50.0, 0.05, 1e-6, 2 * np.pi * 300, 0.1)
+    x = np.asarray(truth.simulate(jnp.asarray(v), dt).displacement)
+    x = x + 1e-3 * np.ptp(x) * np.random.default_rng(1).standard_normal(x.size)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=x, name="r")])
+    start = act([0.018, 0.011, 0.0025], 0.045, 40.0, 0.06, 1.1e-6, 2 * np.pi * 310, 0.12)
+    kw = dict(progress=False, max_steps=100)
+    both = fitting.fit(start, ds, free=["hysteresis.weights", "hysteresis.w0", "creep", "dynamics"], **kw)
+    fixed = fitting.fit(start, ds, free=["hysteresis.weights", "hysteresis.w0", "creep", "dynamics.omega",
+                                         "dynamics.zeta"], **kw)
+    assert both.success and fixed.success
+    status = dict(zip(both.parameter_names, both.std_error_status))
+    moved = ["hysteresis.weights[0]", "hysteresis.weights[1]", "hysteresis.weights[2]", "hysteresis.w0",
+             "creep.stiffnesses[0]", "dynamics.gain"]
+    rest = ["creep.time_constants[0]", "dynamics.omega[0]", "dynamics.zeta[0]"]
+    assert [status[n] for n in moved] == ["infinite"] * 6 and [status[n] for n in rest] == ["finite"] * 3
+    assert all(s == "finite" for s in fixed.std_error_status)
+    for n in rest:
+        se = both.std_errors[both.parameter_names.index(n)]
+        assert se == pytest.approx(fixed.std_errors[fixed.parameter_names.index(n)], rel=1e-2)
