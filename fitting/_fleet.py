@@ -332,9 +332,9 @@ def fit_fleet(
     - `starts`: optional, one model per actuator (the structure of `model`), e.g. data-driven starts.
     - `predictor`, `targets`, `free`, `scales`, `jacobian_chunk`: as for `fitting.Problem`, per actuator (the
       Jacobian scaling of each actuator from its own start).
-    - `weights`: `"range"`, `"noise"` or a mapping, as for `fitting.Problem`, but computed once over the records of
-      the whole fleet (one weight per channel for all actuators; with one target channel this does not change any
-      actuator's minimiser, and the costs of different actuators stay comparable).
+    - `weights`: `"range"`, `"noise"` or a mapping, as for `fitting.Problem`, computed for each actuator from its
+      own records, as `fitting.fit` would (the costs of two actuators are then in their own weights; the RMSEs are
+      comparable).
     - `method`, `max_steps`, `rtol`, `atol`, `ftol`, `linear_solver`: the solver, as for `fitting.solve`; each
       actuator also ends converged when its cost decreased by less than `ftol` relative per accepted step over the
       last five, `"stalled"` after `max_rejections` consecutive rejected trials. A solver instance must evaluate the
@@ -399,17 +399,20 @@ def fit_fleet(
     if not explicit and scales not in ("jacobian", "value"):
         raise PiezojaxValueError(f'`scales` must be "jacobian", "value" or an array, got {scales!r}')
 
-    # one problem per actuator, all with the fleet's channel weights and value scaling (the Jacobian scaling is
-    # computed below for the whole fleet at once)
-    first = Problem(starts[0], datasets[0], predictor=predictor, targets=targets, free=free, scales="value",
-                    jacobian_chunk=jacobian_chunk)
+    # one problem per actuator, each with the channel weights of its own records (so that its fit is the one
+    # `fitting.fit` makes: a solver's path depends on the weights' scale through the step size) and the value
+    # scaling (the Jacobian scaling is computed below for the whole fleet at once)
+    first = Problem(starts[0], datasets[0], predictor=predictor, targets=targets, free=free, weights=weights,
+                    scales="value", jacobian_chunk=jacobian_chunk)
     targets = first.targets
-    weights = channel_weights([e for d in datasets for e in d], targets, weights)
+    per_actuator = [dict(first.weights)] + [None] * (n - 1)
 
     def problem(i, scales_i):
         try:
+            if per_actuator[i] is None:
+                per_actuator[i] = channel_weights(list(datasets[i]), targets, weights)
             return Problem(starts[i], datasets[i], predictor=first.predictor, targets=targets, free=free,
-                           weights=weights, scales=scales_i, jacobian_chunk=jacobian_chunk)
+                           weights=per_actuator[i], scales=scales_i, jacobian_chunk=jacobian_chunk)
         except PiezojaxValueError as e:
             raise PiezojaxValueError(f"actuator {i}: {e}") from e
 
@@ -530,7 +533,7 @@ def fit_fleet(
         accepted_steps=np.asarray(carry.accepted),
         initial_cost=initial_cost,
         cost=np.asarray(carry.lin.cost),
-        rmse=_rmse(core, np.asarray(carry.lin.r), dict(weights)),
+        rmse=_rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in per_actuator]) for c in targets}),
         seconds=seconds,
         devices=len(devices),
         _problem=lambda i: problem(i, scales_np[i]),  # actuator i's problem in the fleet's scaling, on demand
@@ -539,9 +542,10 @@ def fit_fleet(
     )
 
 
-def _rmse(core: ProblemCore, r: np.ndarray, weights: dict[str, float]) -> dict[str, np.ndarray]:
+def _rmse(core: ProblemCore, r: np.ndarray, weights: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Per target channel, each actuator's RMSE over its records, from the stacked residuals (layout of
-    `ProblemCore.residuals`: group by group, channel by channel, experiments stacked)."""
+    `ProblemCore.residuals`: group by group, channel by channel, experiments stacked) and each actuator's channel
+    weights (`weights[c]`, shape `(fleet,)`)."""
     sums: dict[str, np.ndarray] = {}
     counts: dict[str, np.ndarray] = {}
     k = 0
@@ -549,7 +553,7 @@ def _rmse(core: ProblemCore, r: np.ndarray, weights: dict[str, float]) -> dict[s
         for c in g.targets:
             mask = np.asarray(g.masks[c])  # (fleet, experiments, time)
             size = mask[0].size
-            block = r[:, k: k + size] / weights[c]
+            block = r[:, k: k + size] / weights[c][:, None]
             k += size
             sums[c] = sums.get(c, 0.0) + np.sum(block**2, axis=1)
             counts[c] = counts.get(c, 0) + mask.reshape(mask.shape[0], -1).sum(axis=1)

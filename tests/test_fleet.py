@@ -60,14 +60,16 @@ WEIGHTS = {"displacement": 1e6}
 @pytest.fixture(scope="module")
 def fleet():
     sets = _records(3)
-    return sets, fitting.fit_fleet(_model(), sets, free=FREE, weights=WEIGHTS, max_steps=12, progress=False)
+    # the default weights: each actuator's from its own records' ranges, as `fitting.fit` computes them
+    return sets, fitting.fit_fleet(_model(), sets, free=FREE, max_steps=12, progress=False)
 
 
 def test_each_actuator_takes_the_steps_of_its_own_fit(fleet):
     sets, res = fleet
     assert len(res) == 3 and res.devices == len(jax.devices())
     for i, data in enumerate(sets):
-        one = fitting.fit(_model(), data, free=FREE, weights=WEIGHTS, max_steps=12, progress=False, kink_restarts=0)
+        one = fitting.fit(_model(), data, free=FREE, max_steps=12, progress=False, kink_restarts=0)
+        assert res[i].weights == one.weights
         assert res.steps[i] == one.steps and res.accepted_steps[i] == one.accepted_steps
         np.testing.assert_allclose(np.asarray(res._u[i]), np.asarray(one.u), rtol=1e-9, atol=1e-9)
         assert res.cost[i] == pytest.approx(one.cost, rel=1e-9)
@@ -83,6 +85,7 @@ def test_each_actuator_takes_the_steps_of_its_own_fit(fleet):
         err = np.concatenate([fitting.predict(res.model_at(i), e)["displacement"] - e.channels["displacement"]
                               for e in data])
         assert res.rmse["displacement"][i] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-9)
+    assert len({res[i].weights["displacement"] for i in range(3)}) == 3  # each actuator's own
     assert "fleet of 3 actuators" in res.report() and "displacement RMSE" in res.report()
     with pytest.raises(PiezojaxValueError, match="actuator index"):
         res[3]
@@ -90,8 +93,7 @@ def test_each_actuator_takes_the_steps_of_its_own_fit(fleet):
 
 def test_batches_and_host_devices_give_the_same_fit(fleet):
     sets, res = fleet
-    batched = fitting.fit_fleet(_model(), sets, free=FREE, weights=WEIGHTS, max_steps=12, progress=False,
-                                batch_size=2)
+    batched = fitting.fit_fleet(_model(), sets, free=FREE, max_steps=12, progress=False, batch_size=2)
     np.testing.assert_allclose(np.asarray(batched._u), np.asarray(res._u), rtol=1e-9, atol=1e-9)
     assert list(batched.steps) == list(res.steps)
     # split over two host devices (a fresh process: the device count is fixed when JAX starts)

@@ -158,17 +158,15 @@ plt.show()
 # %% [markdown]
 # ## One at a time, for comparison
 #
-# The same solver, start, step limit and channel weight (the fleet computes one weight over all units' records)
-# with `fitting.fit`, unit by unit (after one warm-up fit that compiles). `fleet_fit[i]` is unit i's full
+# The same solver, start, step limit and channel weights (each unit's from its own records, in the fleet as in
+# `fitting.fit`) with `fitting.fit`, unit by unit (after one warm-up fit that compiles). `fleet_fit[i]` is unit i's full
 # `FitResult`; the two ways run the same iterations, so the units that converged reach the same cost.
 
 # %%
 single = min(N, 4)
-w = fleet_fit[0].weights
-fitting.fit(start, datasets[0], free=free, weights=w, max_steps=MAX_STEPS, progress=False)  # compile
+fitting.fit(start, datasets[0], free=free, max_steps=MAX_STEPS, progress=False)  # compile
 t0 = time.perf_counter()
-one = [fitting.fit(start, datasets[i], free=free, weights=w, max_steps=MAX_STEPS, progress=False)
-       for i in range(single)]
+one = [fitting.fit(start, datasets[i], free=free, max_steps=MAX_STEPS, progress=False) for i in range(single)]
 t_one = (time.perf_counter() - t0) / single
 agree = max(abs(one[i].cost / fleet_fit[i].cost - 1) for i in range(single) if fleet_fit[i].success)
 print(f"per unit: fleet {1e3 * t_fleet / N:.0f} ms, one at a time {1e3 * t_one:.0f} ms "
