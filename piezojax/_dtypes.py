@@ -15,12 +15,16 @@ from jaxtyping import ArrayLike
 def common_float_dtype(*xs: ArrayLike) -> np.dtype:
     """The floating dtype that holds every argument without loss (float32 stays float32).
 
-    Explicit, so it works under `jax_numpy_dtype_promotion='strict'`. Complex arguments are ignored here (they are
-    rejected, naming the argument, by `as_float_array`).
+    Values without a dtype (Python numbers, lists, tuples) follow the arrays, as JAX's weakly typed scalars do: a
+    float32 signal with `dt=1e-4` stays float32; only when no argument has a floating dtype do they decide (the
+    default float dtype). Explicit, so it works under `jax_numpy_dtype_promotion='strict'`. Complex arguments are
+    ignored here (they are rejected, naming the argument, by `as_float_array`).
     """
     dtype = None
     for x in xs:
-        d = np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
+        if not hasattr(x, "dtype"):
+            continue
+        d = np.dtype(x.dtype)
         if not jnp.issubdtype(d, jnp.floating):
             continue
         dtype = d if dtype is None else np.promote_types(dtype, d)

@@ -81,6 +81,21 @@ def test_one_loop_in_float32():
     assert_outputs_close(out, blocks(act, v, jnp.float32(DT)), 1e-5)
 
 
+def test_blocks_built_from_float32_arrays_stay_float32_with_python_numbers():
+    """Under x64, blocks constructed from float32 arrays (with Python numbers and empty defaults beside them) keep
+    float32, and so do their outputs for a float32 signal with a Python `dt`."""
+    f32 = jnp.float32
+    G = pj.StableTransferFunction(f32(1e-6), omega=jnp.array([2e3], f32), zeta=jnp.array([0.1], f32))
+    creep = pj.KelvinVoigtCreep(jnp.array([20.0], f32), jnp.array([2.0], f32), k0=None)
+    pi = pj.PrandtlIshlinskii(jnp.array([1.0, 2.0], f32), jnp.array([0.0, 1.0], f32), w0=f32(1.0))
+    assert {x.dtype for x in jax.tree_util.tree_leaves(G) if eqx.is_array(x)} == {jnp.dtype(f32)}
+    v = jnp.linspace(0.0, 3.0, 50, dtype=f32)
+    assert creep.simulate(v, 1e-4).dtype == f32
+    assert pj.Actuator(pi, creep, G).simulate(v, 1e-4).displacement.dtype == f32
+    # without arrays, the default float dtype decides
+    assert pj.StableTransferFunction(1e-6, omega=[2e3], zeta=[0.1]).omega.dtype == jnp.zeros(()).dtype
+
+
 def test_which_chains_take_the_one_loop_pass():
     act = CONFIGS["parallel PI, Kelvin-Voigt, 4th order"]
     assert not takes_one_loop(act, hold="foh")  # the FOH cells would need the next input

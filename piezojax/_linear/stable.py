@@ -94,7 +94,7 @@ class StableTransferFunction(AbstractLinearSystem):
         if num is not None:
             args["num"] = num
         raw = {k: as_float_array(v, k) for k, v in args.items()}
-        dtype = common_float_dtype(*raw.values())
+        dtype = common_float_dtype(*args.values())  # the arrays given decide; numbers and lists follow them
         gain = check_scalar(raw["gain"], "gain", dtype)
         vec = {k: check_vector(raw[k], k, dtype, allow_empty=True) for k in args if k not in ("gain", "num")}
         for a, b in (("omega", "zeta"), ("zero_omega", "zero_zeta")):
