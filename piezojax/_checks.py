@@ -133,6 +133,17 @@ def check_value(x: _X, ok: Callable[[_X], ArrayLike] | ArrayLike, message: str |
     return x
 
 
+def check_same_shape(a: Array, name_a: str, b: Array, name_b: str) -> None:
+    """Raise one `PiezojaxValueError` naming both when two parameter arrays that go together (a play's weight and
+    threshold, a lag's stiffness and time constant) differ in shape — also for leaves replaced after construction
+    (`eqx.tree_at`), whose shapes are known while tracing."""
+    if jnp.shape(a) != jnp.shape(b):
+        raise PiezojaxValueError(
+            f"`{name_a}` and `{name_b}` must have the same shape, got {tuple(jnp.shape(a))} and "
+            f"{tuple(jnp.shape(b))} (was one of them replaced, e.g. with `eqx.tree_at`?)"
+        )
+
+
 def check_finite(x: Array, name: str) -> Array:
     """`check_value` that every entry of `x` is finite, naming `name` (the dtype must be real floating)."""
     check_real_dtype(x, name)

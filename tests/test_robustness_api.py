@@ -370,3 +370,26 @@ def test_a_check_of_a_concrete_value_against_a_traced_one_runs_with_the_computat
     np.testing.assert_array_equal(jax.vmap(u_max)(jnp.array([-10.0, 5.0])), [200.0, 200.0])
     with pytest.raises(Exception, match="`u_max` must be greater than `u_min`"):
         eqx.filter_jit(u_max)(jnp.asarray(300.0)).block_until_ready()
+
+
+@pytest.mark.parametrize("where, value, expected", [
+    (lambda a: a.hysteresis.weights, jnp.full(3, 0.02), r"`weights` and `thresholds` must have the same shape, got "
+     r"\(3,\) and \(4,\) \(was one of them replaced"),
+    (lambda a: a.creep.time_constants, jnp.array([1.0, 2.0]), r"`stiffnesses` and `time_constants` must have the "
+     r"same shape, got \(1,\) and \(2,\)"),
+])
+def test_a_leaf_replaced_with_another_shape_is_named(where, value, expected):
+    act = pj.Actuator(pj.PrandtlIshlinskii(jnp.full(4, 0.02), jnp.arange(4.0) * 10, w0=0.05),
+                      pj.KelvinVoigtCreep(jnp.array([20.0]), jnp.array([2.0]), k0=None), None)
+    bad = eqx.tree_at(where, act, value)
+    v = jnp.linspace(0.0, 50.0, 40)
+    with pytest.raises(pj.PiezojaxValueError, match=expected):
+        bad.simulate(v, 1e-3)
+    with pytest.raises(pj.PiezojaxValueError, match=expected):  # also while tracing: shapes are static
+        eqx.filter_jit(lambda m: m.simulate(v, 1e-3))(bad)
+
+
+def test_replaced_maxwell_slip_breakaway_of_another_shape_is_named():
+    ms = eqx.tree_at(lambda m: m.breakaway, pj.MaxwellSlip(jnp.ones(3), jnp.arange(3.0)), jnp.arange(2.0))
+    with pytest.raises(pj.PiezojaxValueError, match=r"`stiffness` and `breakaway` must have the same shape"):
+        ms(jnp.linspace(0.0, 3.0, 20))

@@ -5,7 +5,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, as_float_array, check_positive, check_scalar, check_vector
+from .._checks import PiezojaxValueError, as_float_array, check_positive, check_same_shape, check_scalar, check_vector
 from .._dtypes import common_float_dtype
 from .base import AbstractCreep
 from .lags import lag_sum
@@ -64,6 +64,7 @@ class KelvinVoigtCreep(AbstractCreep):
         self.k0 = None if k0 is None else check_positive(check_scalar(k0, "k0", finite=False), "k0")
 
     def check(self) -> "KelvinVoigtCreep":
+        check_same_shape(self.stiffnesses, "stiffnesses", self.time_constants, "time_constants")
         k = check_positive(self.stiffnesses, "stiffnesses")
         tau = check_positive(self.time_constants, "time_constants")
         out = eqx.tree_at(lambda m: (m.stiffnesses, m.time_constants), self, (k, tau))

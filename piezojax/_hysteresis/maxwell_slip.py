@@ -4,7 +4,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._checks import PiezojaxValueError, check_positive, check_scalar, check_vector
+from .._checks import PiezojaxValueError, check_positive, check_same_shape, check_scalar, check_vector
 from .._custom_types import ScalarLike, VectorLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
@@ -116,6 +116,7 @@ class MaxwellSlip(AbstractHysteresis):
         return PrandtlIshlinskii(-k, self.thresholds[order], w0=linear + jnp.sum(k), smoothing=self.smoothing)
 
     def check(self) -> "MaxwellSlip":
+        check_same_shape(self.stiffness, "stiffness", self.breakaway, "breakaway")
         k, f = check_positive(self.stiffness, "stiffness"), check_positive(self.breakaway, "breakaway", allow_zero=True)
         return eqx.tree_at(
             lambda m: (m.stiffness, m.breakaway, m.smoothing), self, (k, f, error_if_bad_smoothing(self.smoothing))

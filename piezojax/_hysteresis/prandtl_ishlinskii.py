@@ -11,6 +11,7 @@ from .._checks import (
     PiezojaxValueError,
     as_float_array,
     check_finite,
+    check_same_shape,
     check_scalar,
     check_value,
     check_vector,
@@ -175,6 +176,7 @@ class PrandtlIshlinskii(_AbstractStopCell):
 
     def check(self) -> "PrandtlIshlinskii":
         # outside the scan: one check per parameter array, also for leaves replaced after __init__ (`eqx.tree_at`)
+        check_same_shape(self.weights, "weights", self.thresholds, "thresholds")
         return eqx.tree_at(
             lambda m: (m.weights, m.thresholds, m.w0, m.smoothing),
             self,
