@@ -343,7 +343,9 @@ class Experiment:
         if (t is None) == (dt is None):
             raise PiezojaxValueError(f"{label}: pass exactly one of `t` and `dt`")
         if t is None:
-            dt_f = float(np.asarray(dt)) if np.ndim(dt) == 0 else math.nan
+            numeric = not isinstance(dt, str | bytes | bool) and np.ndim(dt) == 0
+            numeric = numeric and np.issubdtype(np.asarray(dt).dtype, np.number)
+            dt_f = float(np.asarray(dt)) if numeric else math.nan
             if not (math.isfinite(dt_f) and dt_f > 0):
                 raise PiezojaxValueError(f"{label}: `dt` must be a positive finite scalar, got {dt!r}")
             n = np.shape(v_in)[0] if np.ndim(v_in) >= 1 else 0

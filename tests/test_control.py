@@ -261,3 +261,12 @@ def test_adaptive_offline_start_fits_the_inverse_the_preview_aims_at():
     assert errors[2] < 0.02 < errors[1], errors
     with pytest.raises(pj.PiezojaxValueError, match="preview"):
         pj.AdaptiveInverseController(jax.random.key(1), hidden=2, preview=-1)
+
+
+def test_network_controllers_name_a_key_that_is_no_key():
+    for make in (lambda k: pj.AdaptiveInverseController(k, hidden=4), lambda k: pj.NarxNetwork(k, hidden=4, output_lags=2, input_lags=2)):
+        for bad in (0, jnp.zeros(3)):
+            with pytest.raises(pj.PiezojaxValueError, match=r"`key` must be one JAX PRNG key"):
+                make(bad)
+        make(jax.random.key(0))
+        make(jax.random.PRNGKey(0))

@@ -88,6 +88,9 @@ def test_experiment_from_arrays_t_or_dt(rng):
         Experiment.from_arrays(v_in=v, t=e1.t, dt=0.5)
     with pytest.raises(PiezojaxValueError, match="`dt` must be a positive"):
         Experiment.from_arrays(v_in=v, dt=-1.0)
+    for text in ("1e-4", True):  # a string or a flag is no step
+        with pytest.raises(PiezojaxValueError, match="`dt` must be a positive finite scalar"):
+            Experiment.from_arrays(v_in=v, dt=text)
     # channels are stored in CHANNELS order whatever the order given
     e3 = Experiment.from_arrays(v_in=v, dt=1.0, current=v, v_out=v)
     assert e3.channel_names == ("v_out", "current")

@@ -22,8 +22,13 @@ def forward(params: tuple[Array, Array, Array, Array], z: Array) -> tuple[Array,
 
 def random_hidden_layer(key: PRNGKeyArray, hidden: int, inputs: int, dtype) -> tuple[Array, Array]:
     """Hidden weights $\\sim N(0, 1/n)$ and biases $\\sim N(0, 1)$ for $n$ normalised inputs."""
-    if not isinstance(hidden, int) or hidden < 1:
+    if not isinstance(hidden, int) or isinstance(hidden, bool) or hidden < 1:
         raise PiezojaxValueError(f"`hidden` must be a positive int, got {hidden!r}")
+    typed = hasattr(key, "dtype") and jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+    raw = hasattr(key, "dtype") and key.dtype == jnp.uint32 and jnp.shape(key) == (2,)
+    if not (typed and jnp.shape(key) == ()) and not raw:
+        raise PiezojaxValueError(f"`key` must be one JAX PRNG key (jax.random.key(0) or jax.random.PRNGKey(0)), got "
+                                 f"{type(key).__name__} {getattr(key, 'dtype', '')} of shape {jnp.shape(key)}")
     kw, kc = jax.random.split(key)
     W = jax.random.normal(kw, (hidden, inputs), dtype) / jnp.sqrt(jnp.asarray(inputs, dtype))
     return W, jax.random.normal(kc, (hidden,), dtype)
