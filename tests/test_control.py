@@ -264,7 +264,8 @@ def test_adaptive_offline_start_fits_the_inverse_the_preview_aims_at():
 
 
 def test_network_controllers_name_a_key_that_is_no_key():
-    for make in (lambda k: pj.AdaptiveInverseController(k, hidden=4), lambda k: pj.NarxNetwork(k, hidden=4, output_lags=2, input_lags=2)):
+    for make in (lambda k: pj.AdaptiveInverseController(k, hidden=4),
+                 lambda k: pj.NarxNetwork(k, hidden=4, output_lags=2, input_lags=2)):
         for bad in (0, jnp.zeros(3)):
             with pytest.raises(pj.PiezojaxValueError, match=r"`key` must be one JAX PRNG key"):
                 make(bad)
