@@ -230,7 +230,7 @@ class FleetResult:
                          seconds=self.seconds / n, levels=[])
 
     def report(self) -> str:
-        """A short text summary: verdicts by code, cost and RMSE quantiles over the fleet."""
+        """A short text summary: verdicts by code, steps, and RMSE quantiles over the fleet."""
         lines = [f"fleet of {len(self)} actuators on {self.devices} device(s), {self.seconds:.1f} s: "
                  f"{int(np.sum(self.success))} converged"]
         codes, counts = np.unique(np.asarray(self.codes), return_counts=True)
@@ -334,7 +334,8 @@ def fit_fleet(
       Jacobian scaling of each actuator from its own start).
     - `weights`: `"range"`, `"noise"` or a mapping, as for `fitting.Problem`, computed for each actuator from its
       own records, as `fitting.fit` would (the costs of two actuators are then in their own weights; the RMSEs are
-      comparable).
+      comparable). An actuator whose records make its weight undefined (a channel constant in all of them, with
+      `"range"`) is an error naming it, as `fitting.fit` would refuse it: leave it out of the fleet.
     - `method`, `max_steps`, `rtol`, `atol`, `ftol`, `linear_solver`: the solver, as for `fitting.solve`; each
       actuator also ends converged when its cost decreased by less than `ftol` relative per accepted step over the
       last five, `"stalled"` after `max_rejections` consecutive rejected trials. A solver instance must evaluate the

@@ -150,7 +150,7 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
     y = fitting.predict(result.model, test, history=train)["displacement"]
     ```
     """
-    from ._data import Experiment
+    from ._data import Dataset, Experiment
 
     if not isinstance(experiment, Experiment):
         raise PiezojaxValueError(f"`experiment` must be a fitting.Experiment, got {type(experiment).__name__}")
@@ -158,7 +158,7 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
         history = ()
     elif isinstance(history, Experiment):
         history = (history,)
-    elif isinstance(history, list | tuple):
+    elif isinstance(history, list | tuple | Dataset):
         history = tuple(history)
     else:
         raise PiezojaxValueError(f"`history` must be an Experiment or a list of Experiments (records run before "

@@ -55,11 +55,12 @@ class FitResult:
       of them (one-sided slopes above $-$`gtol` in the same units) it is a minimum at a kink of the piecewise smooth
       model, code `"converged_at_kink"`; else it failed, code `"not_stationary"`. A fit to rounding-level residuals
       is `"converged_zero_residual"`.
-    - `std_error_status`: per parameter, `"finite"`, `"infinite"` (along a direction the data do not determine, it
-      changes by a tenth or more of the largest relative change there, e.g. every parameter of a whole-scale
-      redundancy), `"at a bound"` (a constrained entry within 1e-9 of its leaf's largest
-      magnitude from zero) or `"not computed"` (no finite Jacobian); the standard error of all but the first is
-      reported as infinite for all statuses but `"finite"` (NaN when not computed) and their correlations as NaN.
+    - `std_error_status`: per parameter, `"finite"`, `"infinite"` (a tenth or more of its scaled change lies along a
+      direction the data do not determine, or along such a direction it changes by a tenth or more of the largest
+      relative change there, e.g. every parameter of a whole-scale redundancy), `"at a bound"` (a constrained entry
+      within 1e-9 of its leaf's largest magnitude from zero) or `"not computed"` (no finite Jacobian); the standard
+      error of all but the first is reported as infinite for all statuses but `"finite"` (NaN when not computed) and
+      their correlations as NaN.
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
       `reason`, `steps`, and `best` (the one reported); `None` otherwise.
@@ -343,23 +344,27 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     status = np.full(se.shape, "finite", dtype=object)
     if not np.all(keep):
-        # Directions the data do not determine. Along them each parameter changes by a relative amount a_i (a row
-        # vector over a basis of those directions; per |value| + standard error). Parameter i is undetermined
-        # (infinite standard error) when, along the undetermined direction that moves it most (a_i / |a_i|), it
-        # changes by a tenth or more of the largest relative change of any parameter there:
-        # |a_i|^2 >= 0.1 max_j |a_j . a_i|. Relative changes, so that a small parameter of a whole-scale
-        # redundancy (every play weight times c, the gain divided by c) counts as fully as a large one; the most
-        # moving direction, so that unrelated undetermined directions (a play that has no effect) do not mask
-        # each other. The others keep the finite errors of the pseudo-inverse, i.e. with the undetermined
-        # combination held fixed (touching it by 1e-3 does not make a parameter unknown).
+        # Directions the data do not determine. A parameter is undetermined (infinite standard error) when it
+        # moves along them by either measure:
+        # - scaled: a tenth or more of its (scaled) change lies along one of them (a sum a + b of two parameters,
+        #   whatever their values);
+        # - relative: along them each parameter changes by a relative amount a_i (a row vector over a basis of
+        #   those directions; per |value| + standard error), and along the direction that moves parameter i most
+        #   (a_i / |a_i|) it changes by a tenth or more of the largest relative change there,
+        #   |a_i|^2 >= 0.1 max_j |a_j . a_i| (a small parameter of a whole-scale redundancy — every play weight
+        #   times c, the gain divided by c — counts as fully as a large one; unrelated undetermined directions do
+        #   not mask each other).
+        # The others keep the finite errors of the pseudo-inverse, i.e. with the undetermined combination held
+        # fixed (touching it by 1e-3 does not make a parameter unknown).
         null = evecs[:, ~keep]
+        scaled = np.abs(d @ null).max(axis=1) / np.maximum(np.abs(d).max(axis=1), 1e-300)
         theta = np.asarray(problem.physical(u))
         size = np.maximum(np.abs(theta) + se, 1e-9 * np.abs(d).max(axis=1))
         a = (d @ null) / np.maximum(size, 1e-300)[:, None]
         overlap = np.abs(a @ a.T)
         own = np.diag(overlap)
-        share = np.where(own > 0, own / np.maximum(overlap.max(axis=0), 1e-300), 0.0)
-        status[share >= 0.1] = "infinite"
+        relative = np.where(own > 0, own / np.maximum(overlap.max(axis=0), 1e-300), 0.0)
+        status[(scaled >= 0.1) | (relative >= 0.1)] = "infinite"
     status[_at_bound(problem, u)] = "at a bound"
     # the correlations of the determined parameters, from the covariance before the others are marked
     with np.errstate(invalid="ignore", divide="ignore"):

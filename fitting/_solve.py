@@ -190,7 +190,7 @@ def solve(
         raise PiezojaxValueError(f"`kink_restarts` must be an integer >= 0, got {kink_restarts!r}")
     solver = _solver(method, rtol, atol, ftol, linear_solver)
     meter = as_progress_meter(progress)
-    if smoothing is not None and (isinstance(smoothing, str) or not isinstance(smoothing, Sequence | np.ndarray)):
+    if smoothing is not None and (isinstance(smoothing, str | bytes) or np.ndim(smoothing) != 1):
         raise PiezojaxValueError(f"`smoothing` must be a sequence of continuation levels (e.g. (0.05, 0.0)) or None, "
                                  f"got {smoothing!r}")
     levels = [None] if smoothing is None else list(smoothing)

@@ -404,16 +404,18 @@ def _data_settings(args, base: dict) -> dict:
     from ._data import parse_columns, parse_units
 
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
-    # `--units ''`: every column in SI (no unit of the base kept); other --units add to or replace the base's
-    si = args.units is not None and not any(u.strip() for u in args.units)
-    units = {} if si else _pairs(args.units, "--units", "COLUMN=UNIT (e.g. displacement=um), or '' for SI")
+    # `--units ''`: no unit of the base kept (every column in SI but those other --units declare); other --units add
+    # to or replace the base's
+    si = args.units is not None and any(not u.strip() for u in args.units)
+    units = _pairs([u for u in args.units or [] if u.strip()], "--units", "COLUMN=UNIT (e.g. displacement=um), or "
+                   "'' for SI")
     # `--columns ''`: no renaming; any other --columns replaces the whole mapping (its keys are the file's names)
     clear = args.columns is not None and not any(c.strip() for c in args.columns)
     columns = {} if clear else _pairs(args.columns, "--columns", "FILECOLUMN=COLUMN (e.g. u=v_in)")
     parse_units(units, "--units")
     parse_columns(columns, "--columns")
     if si:
-        out["units"] = {}
+        out["units"] = units
     elif units:
         out["units"] = {**out.get("units", {}), **units}
     if columns or clear:
@@ -793,8 +795,10 @@ def _cmd_predict(args) -> int:
                         fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
     settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
-    if settings.get("units") and args.units is None:
-        shown = ",".join(f"{k}={v}" for k, v in settings["units"].items())
+    given = [u for u in args.units or [] if u.strip()]
+    kept = {k: v for k, v in settings.get("units", {}).items() if k not in _pairs(given, "--units", "")}
+    if kept:
+        shown = ",".join(f"{k}={v}" for k, v in kept.items())
         _info(f"reading the files in the fit's units ({shown}); --units '' reads them in SI")
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings, args.group)

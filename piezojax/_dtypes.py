@@ -15,10 +15,11 @@ from jaxtyping import ArrayLike
 def common_float_dtype(*xs: ArrayLike) -> np.dtype:
     """The floating dtype that holds every argument without loss (float32 stays float32).
 
-    Values without a dtype (Python numbers, lists, tuples) follow the arrays, as JAX's weakly typed scalars do: a
-    float32 signal with `dt=1e-4` stays float32; only when no argument has a floating dtype do they decide (the
-    default float dtype). Explicit, so it works under `jax_numpy_dtype_promotion='strict'`. Complex arguments are
-    ignored here (they are rejected, naming the argument, by `as_float_array`).
+    Values without a dtype (Python numbers, lists, tuples) follow the arrays, as in `param_dtype` (like JAX's weakly
+    typed scalars; unlike JAX, for lists too): a float32 signal with `dt=1e-4` stays float32; only when no argument
+    has a floating dtype do they decide (the default float dtype). Explicit, so it works under
+    `jax_numpy_dtype_promotion='strict'`. Complex arguments are ignored here (they are rejected, naming the argument,
+    by `as_float_array`).
     """
     dtype = None
     for x in xs:

@@ -70,6 +70,11 @@ def test_redundant_pair_is_undetermined_and_the_rest_match_least_squares(tmp_pat
                           "std_error_status": "infinite"}
     assert saved["c"]["std_error"] == pytest.approx(se_ref[1], rel=1e-6)
     assert "± inf (not determined by the data)" in result.report()
+    # the same pair with one of them at 0 (its relative change unbounded): both still undetermined
+    at_zero = fitting.fit(_model(a=float(coef[0]), b=0.0, c=float(coef[1])), _dataset(y), predictor=_predictor(),
+                          free=["a", "b", "c"], weights={"displacement": 1.0}, max_steps=50)
+    assert at_zero.std_error_status == ["infinite", "infinite", "finite"]
+    assert at_zero.std_errors[2] == pytest.approx(se_ref[1], rel=1e-6)
 
 
 def test_minimum_at_a_kink_is_converged_and_a_descent_point_is_not():
@@ -143,6 +148,8 @@ def test_fit_and_predict_arguments_of_the_wrong_kind_are_named():
     with pytest.raises(pj.PiezojaxValueError, match=r"`smoothing` must be a sequence of continuation levels .* got "
                        r"0\.05"):
         fitting.fit(_model(), ds, smoothing=0.05, **kw)
+    by_array = fitting.fit(_model(), ds, smoothing=jnp.asarray([0.0]), max_steps=5, **kw)  # a 1-d array of levels
+    assert by_array.cost == fitting.fit(_model(), ds, smoothing=(0.0,), max_steps=5, **kw).cost
     with pytest.raises(pj.PiezojaxValueError, match=r"`dataset` must be a fitting\.Dataset.* got NoneType"):
         fitting.fit(_model(), None, **kw)
     result = fitting.fit(_model(), ds, targets="displacement", max_steps=20, **kw)  # one channel, not its letters
@@ -154,6 +161,8 @@ def test_fit_and_predict_arguments_of_the_wrong_kind_are_named():
     with pytest.raises(pj.PiezojaxValueError, match=r"`history` must be an Experiment or a list .* got ndarray"):
         result.predict(ds[0], history=np.zeros(5))
     np.testing.assert_allclose(result.predict(ds[0], history=None)[0]["displacement"], y, atol=1e-9)
+    np.testing.assert_array_equal(result.predict(ds[0], history=ds)[0]["displacement"],
+                                  result.predict(ds[0], history=[ds[0]])[0]["displacement"])  # a Dataset too
 
 
 def test_a_whole_scale_redundancy_leaves_every_parameter_it_moves_undetermined():

@@ -507,6 +507,14 @@ def test_numpy_savetxt_header_and_declared_units(bench, tmp_path, capsys):
                  "--units", ""]) == 0
     assert "fit's units" not in capsys.readouterr().err
     np.testing.assert_allclose(fitting.load_experiment(tmp_path / "p_si" / "savetxt.csv").t, t, rtol=1e-15)
+    # --units adds to the fit's units, which the note names; '' first resets them, then the others apply
+    assert main(["predict", str(out2), str(tmp_path / "micro.csv"), "--out", str(tmp_path / "p2"),
+                 "--units", "displacement=um"]) == 0
+    assert "in the fit's units (t=ms,v_in=mV); --units ''" in capsys.readouterr().err
+    assert main(["predict", str(out2), str(tmp_path / "micro.csv"), "--out", str(tmp_path / "p3"),
+                 "--units", "", "--units", "t=ms,v_in=mV,displacement=um"]) == 0
+    assert "fit's units" not in capsys.readouterr().err
+    np.testing.assert_allclose(fitting.load_experiment(tmp_path / "p3" / "micro.csv").t, t, rtol=1e-15, atol=1e-18)
     # a declared unit that gives implausible values is named as declared; an undeclared one gets its likely unit
     with pytest.warns(fitting._data.UnitWarning, match="'v_in', declared in 'kV', has a peak of .* check its"):
         fitting.load_experiment(tmp_path / "micro.csv", units={"t": "ms", "v_in": "kV", "displacement": "um"})

@@ -25,7 +25,7 @@ def random_hidden_layer(key: PRNGKeyArray, hidden: int, inputs: int, dtype) -> t
     if not isinstance(hidden, int) or isinstance(hidden, bool) or hidden < 1:
         raise PiezojaxValueError(f"`hidden` must be a positive int, got {hidden!r}")
     typed = hasattr(key, "dtype") and jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
-    raw = hasattr(key, "dtype") and key.dtype == jnp.uint32 and jnp.shape(key) == (2,)
+    raw = hasattr(key, "dtype") and key.dtype == jnp.uint32 and jnp.ndim(key) == 1  # PRNGKey(0), any impl
     if not (typed and jnp.shape(key) == ()) and not raw:
         raise PiezojaxValueError(f"`key` must be one JAX PRNG key (jax.random.key(0) or jax.random.PRNGKey(0)), got "
                                  f"{type(key).__name__} {getattr(key, 'dtype', '')} of shape {jnp.shape(key)}")
