@@ -1149,3 +1149,16 @@ def _unique_names(paths: Sequence[Path]) -> list[str]:
             level += 1
         out.append(name(i, level))
     return out
+
+
+def experiments_of(dataset) -> list["Experiment"]:
+    """The experiments of `dataset`: an `Experiment`, a `Dataset` or any other iterable of experiments (not a string
+    or an array); anything else is one `PiezojaxValueError` naming `dataset`."""
+    if isinstance(dataset, Experiment):
+        return [dataset]
+    if isinstance(dataset, Dataset):
+        return list(dataset)
+    if isinstance(dataset, str | bytes) or hasattr(dataset, "shape") or not isinstance(dataset, Iterable):
+        raise PiezojaxValueError(f"`dataset` must be a fitting.Dataset, an Experiment or a list of Experiments "
+                                 f"(e.g. fitting.Experiment.from_arrays(t, v_in)), got {type(dataset).__name__}")
+    return list(dataset)

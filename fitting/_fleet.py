@@ -406,12 +406,17 @@ def fit_fleet(
     first = Problem(starts[0], datasets[0], predictor=predictor, targets=targets, free=free, weights=weights,
                     scales="value", jacobian_chunk=jacobian_chunk)
     targets = first.targets
-    per_actuator = [dict(first.weights)] + [None] * (n - 1)
+
+    def weights_of(i):
+        try:
+            return channel_weights(list(datasets[i]), targets, weights)
+        except PiezojaxValueError as e:
+            raise PiezojaxValueError(f"actuator {i}: {e}") from e
+
+    per_actuator = [dict(first.weights)] + [weights_of(i) for i in range(1, n)]
 
     def problem(i, scales_i):
         try:
-            if per_actuator[i] is None:
-                per_actuator[i] = channel_weights(list(datasets[i]), targets, weights)
             return Problem(starts[i], datasets[i], predictor=first.predictor, targets=targets, free=free,
                            weights=per_actuator[i], scales=scales_i, jacobian_chunk=jacobian_chunk)
         except PiezojaxValueError as e:

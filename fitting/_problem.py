@@ -1,6 +1,6 @@
 """A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -452,15 +452,10 @@ class Problem:
         scales: Array | str = "jacobian",
         jacobian_chunk: int | None = None,
     ):
-        from ._data import Dataset, Experiment
+        from ._data import Dataset, experiments_of
 
-        if isinstance(dataset, Experiment):
-            dataset = Dataset([dataset])
-        elif not isinstance(dataset, Dataset):
-            if isinstance(dataset, str | bytes) or not isinstance(dataset, Iterable):
-                raise PiezojaxValueError(f"`dataset` must be a fitting.Dataset, an Experiment or a list of "
-                                         f"Experiments, got {type(dataset).__name__}")
-            dataset = Dataset(list(dataset))
+        if not isinstance(dataset, Dataset):
+            dataset = Dataset(experiments_of(dataset))
         if len(dataset) == 0:
             raise PiezojaxValueError("`dataset` is empty")
         predictor = default_predictor(model) if predictor is None else predictor

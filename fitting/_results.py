@@ -173,18 +173,11 @@ class FitResult:
         experiments or one `Experiment`), each after the records of `history`, by `fitting.predict` (e.g. the
         training record before a held-out record that continues it; `check_finite` as there). Any record length
         works. `result.predict(result.dataset)` are the fitted records' predictions."""
-        from ._data import Dataset, Experiment
+        from ._data import experiments_of
         from ._predict import predict
 
-        if isinstance(dataset, Experiment):
-            exps = [dataset]
-        elif isinstance(dataset, Dataset | list | tuple):
-            exps = list(dataset)
-        else:
-            raise PiezojaxValueError(f"`dataset` must be a fitting.Dataset, an Experiment or a list of Experiments "
-                                     f"(e.g. fitting.Experiment.from_arrays(t, v_in)), got {type(dataset).__name__}")
         out = []
-        for e in exps:
+        for e in experiments_of(dataset):
             preds = predict(self.model, e, predictor=self.predictor, history=history, check_finite=check_finite)
             out.append({c: y for c, y in preds.items() if c in self.targets})
         return out
@@ -356,11 +349,11 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
         #   not mask each other).
         # The others keep the finite errors of the pseudo-inverse, i.e. with the undetermined combination held
         # fixed (touching it by 1e-3 does not make a parameter unknown).
-        null = evecs[:, ~keep]
-        scaled = np.abs(d @ null).max(axis=1) / np.maximum(np.abs(d).max(axis=1), 1e-300)
-        theta = np.asarray(problem.physical(u))
-        size = np.maximum(np.abs(theta) + se, 1e-9 * np.abs(d).max(axis=1))
-        a = (d @ null) / np.maximum(size, 1e-300)[:, None]
+        move = d @ evecs[:, ~keep]  # each parameter's change along a basis of those directions
+        reach = np.abs(d).max(axis=1)
+        scaled = np.abs(move).max(axis=1) / np.maximum(reach, 1e-300)
+        size = np.maximum(np.abs(np.asarray(problem.physical(u))) + se, 1e-9 * reach)
+        a = move / np.maximum(size, 1e-300)[:, None]
         overlap = np.abs(a @ a.T)
         own = np.diag(overlap)
         relative = np.where(own > 0, own / np.maximum(overlap.max(axis=0), 1e-300), 0.0)

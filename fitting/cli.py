@@ -398,17 +398,21 @@ def _pairs(items: list[str] | None, option: str, example: str) -> dict[str, str]
     return out
 
 
+def _given_units(args) -> tuple[bool, dict[str, str]]:
+    """`--units` as given: whether an empty value asks to drop the base's units (every column in SI but those the
+    other values declare), and the declared `{column: unit}`."""
+    items = args.units or []
+    return any(not u.strip() for u in items), _pairs([u for u in items if u.strip()], "--units",
+                                                    "COLUMN=UNIT (e.g. displacement=um), or '' for SI")
+
+
 def _data_settings(args, base: dict) -> dict:
     """How to read the data files: `base` (CONFIG's `[data]`, or the fit's for `predict`) with the command line's
     options on top; checked here, so that a bad option is named before any file is read."""
     from ._data import parse_columns, parse_units
 
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
-    # `--units ''`: no unit of the base kept (every column in SI but those other --units declare); other --units add
-    # to or replace the base's
-    si = args.units is not None and any(not u.strip() for u in args.units)
-    units = _pairs([u for u in args.units or [] if u.strip()], "--units", "COLUMN=UNIT (e.g. displacement=um), or "
-                   "'' for SI")
+    si, units = _given_units(args)  # `--units ''`: no unit of the base kept; other --units add to or replace them
     # `--columns ''`: no renaming; any other --columns replaces the whole mapping (its keys are the file's names)
     clear = args.columns is not None and not any(c.strip() for c in args.columns)
     columns = {} if clear else _pairs(args.columns, "--columns", "FILECOLUMN=COLUMN (e.g. u=v_in)")
@@ -795,8 +799,8 @@ def _cmd_predict(args) -> int:
                         fit_folder=args.model_dir)
     config, model = load_fitted(args.model_dir)
     settings = _data_settings(args, _fit_data_settings(args.model_dir, config))
-    given = [u for u in args.units or [] if u.strip()]
-    kept = {k: v for k, v in settings.get("units", {}).items() if k not in _pairs(given, "--units", "")}
+    given = _given_units(args)[1]
+    kept = {k: v for k, v in settings.get("units", {}).items() if k not in given}
     if kept:
         shown = ",".join(f"{k}={v}" for k, v in kept.items())
         _info(f"reading the files in the fit's units ({shown}); --units '' reads them in SI")
