@@ -441,7 +441,7 @@ def _getter(path: list[str]):
 
 
 @eqx.filter_jit
-def _displacement(model, v, dt):
+def displacement_of(model, v, dt):
     """An actuator's displacement, compiled once per model structure and record length (not once per call)."""
     return model.simulate(v, dt).displacement
 
@@ -452,7 +452,7 @@ def _start_error(model, dataset) -> float:
     for e in dataset:
         if e.has("displacement"):
             y = np.asarray(e["displacement"])
-            err = np.asarray(_displacement(model, jnp.asarray(e.v_in), jnp.asarray(e.dt))) - y
+            err = np.asarray(displacement_of(model, jnp.asarray(e.v_in), jnp.asarray(e.dt))) - y
             total += float(np.sum((err / max(float(np.ptp(y)), np.finfo(float).tiny)) ** 2))
     return total if np.isfinite(total) else np.inf
 
@@ -638,7 +638,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         targets=targets, method=method, data=data,
     )
     if free is not None:
-        from ._problem import _matches, parameter_paths
+        from ._problem import matches, parameter_paths
 
         values = parameter_paths(cfg.build(None))
         paths = list(values)
@@ -647,7 +647,7 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         charge_only = ("capacitance", "coupling") if no_charge else ()
         listed = [p for p in paths if p not in charge_only]
         for sel in free:
-            matched = [p for p in paths if _matches(p, sel)]
+            matched = [p for p in paths if matches(p, sel)]
             if not matched:
                 raise ft.error(f"unknown parameter path {sel!r}; the model's parameters: {', '.join(listed)}", "free")
             if sel in charge_only:

@@ -36,7 +36,7 @@ from piezojax._checks import PiezojaxValueError, refusals_as_nan
 
 from ._problem import Problem, ProblemCore, channel_weights, jacobian_scales, model_error, over_starts
 from ._results import FitResult, summarise
-from ._solve import PrecisionWarning, _caller_level, _solver
+from ._solve import PrecisionWarning, caller_level, make_solver
 from ._solver import AbstractNormalSolver, Linearisation, Progress, Verdict, as_progress_meter, result_message
 
 # an actuator's state in the loop, as an int code: 0 running; the others are `RESULTS` names (two ways to converge)
@@ -266,9 +266,8 @@ def _share_frozen(statics, arrays):
     the layout of `arrays.frozen`).
 
     Why: a value the fleet stacks is mapped under `vmap`, and so is everything computed from it, one copy per
-    actuator of work that is the same for all. Before the operators kept their choice of loop unmapped
-    (`exact_everywhere`), a stacked `smoothing` also ran their sequential smooth loop: on an H200 one actuator's
-    linearisation took 77 ms in a fleet of one against 2.2 ms alone."""
+    actuator of work that is the same for all (and a mapped `smoothing` would make the operators' choice of loop,
+    `exact_everywhere`, depend on every actuator's value)."""
 
     def equal_rows(x):  # bit for bit (-0.0 is not 0.0); a leaf numpy cannot read (PRNG keys) stays stacked
         if not eqx.is_array(x) or x.shape[0] < 1:
@@ -393,7 +392,7 @@ def fit_fleet(
         raise PiezojaxValueError(f"`batch_size` must be a positive multiple of the number of devices "
                                  f"({len(devices)}), got {batch_size!r}")
     batch_size = int(batch_size)
-    solver = _solver(method, rtol, atol, ftol, linear_solver)
+    solver = make_solver(method, rtol, atol, ftol, linear_solver)
     window = 5
     meter = as_progress_meter(progress)
     explicit = not isinstance(scales, str)
@@ -433,7 +432,7 @@ def fit_fleet(
     del problems  # their data live on in `arrays`; a `FitResult` rebuilds one on demand
     if u0.dtype != jnp.float64:
         warnings.warn(f"fitting in {u0.dtype}: JAX's 64-bit mode is off (see fitting.solve)", PrecisionWarning,
-                      stacklevel=_caller_level())
+                      stacklevel=caller_level())
     mesh = Mesh(np.array(devices), ("fleet",)) if len(devices) > 1 else None
     total = n + (-n) % batch_size
     padding = jnp.arange(total) >= n

@@ -36,7 +36,7 @@ def _play_columns(v: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
     return np.asarray(_play(jnp.asarray(thresholds), jnp.asarray(v)), dtype=float)
 
 
-def _filter_pairs(x: np.ndarray, dt: float, omega: np.ndarray, zeta: np.ndarray) -> np.ndarray:
+def filter_pairs(x: np.ndarray, dt: float, omega: np.ndarray, zeta: np.ndarray) -> np.ndarray:
     r"""Apply the DC-normalised cascade $\prod_i \omega_i^2/(s^2 + 2\zeta_i\omega_i s + \omega_i^2)$ along axis 0,
     from rest, exactly as `StableTransferFunction(1.0, omega, zeta).simulate` (ZOH of the *whole* cascade — not of
     each section, whose inputs are not piecewise constant): its realisation is discretised by
@@ -201,7 +201,7 @@ def _highpassed(records, cutoff: float):
     return out
 
 
-def _dynamics_candidates(records, order: int, max_rows: int | None = None) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def dynamics_candidates(records, order: int, max_rows: int | None = None) -> list[tuple[str, np.ndarray, np.ndarray]]:
     r"""Candidate `(label, omega, zeta)` for the dynamics from the drive/output records of one step: the ARX of
     `_arx_pairs` on the raw records and on records high-passed at $f_s/1000$, $f_s/200$ and $f_s/50$ (see
     `_highpassed`), then the spectral peak (`_spectral_pairs`). A candidate that fails (an unstable or
@@ -263,7 +263,7 @@ def _through(designs, recs, omega, zeta, rows) -> np.ndarray:
         if omega is None:
             out.append(a[keep])
         else:
-            out.append(np.concatenate([_filter_pairs(a[:, j : j + 16], dt, omega, zeta)[keep]
+            out.append(np.concatenate([filter_pairs(a[:, j : j + 16], dt, omega, zeta)[keep]
                                        for j in range(0, a.shape[1], 16)], axis=1))
     return np.concatenate(out)
 
@@ -444,7 +444,7 @@ def cold_start_actuator(
         # explains the displacement best
         drives = [_drive(a, dt, taus, w, c, series, n_plays) for a, (_, _, dt) in zip(compact_raw, recs)]
         pairs = [(u, y, dt) for u, (_, y, dt), ok in zip(drives, recs, is_arx) if ok]
-        omega, zeta = _best_dynamics(_dynamics_candidates(pairs, dynamics_order, max_rows), drives, recs, rows,
+        omega, zeta = _best_dynamics(dynamics_candidates(pairs, dynamics_order, max_rows), drives, recs, rows,
                                      y_all)
     if npairs:  # 5. final gains through the final dynamics
         w, c = compact_gains(compact_raw, taus, omega, zeta)

@@ -258,9 +258,9 @@ class ActuatorModel(_WithState):
         return (("capacitance", "coupling") if config.charge is not None else ()) + self.state_free(config)
 
     def displacement(self, model, experiment):
-        from ._config import _displacement
+        from ._config import displacement_of
 
-        return np.asarray(_displacement(model, jnp.asarray(experiment.v_in), jnp.asarray(experiment.dt)))
+        return np.asarray(displacement_of(model, jnp.asarray(experiment.v_in), jnp.asarray(experiment.dt)))
 
     def fit_free(self, config, free, targets):
         if targets is not None and not {"charge", "current"} & set(targets):

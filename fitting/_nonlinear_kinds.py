@@ -20,7 +20,7 @@ import scipy.optimize
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._initialise import MAX_ROWS, _dynamics_candidates, _filter_pairs
+from ._initialise import MAX_ROWS, dynamics_candidates, filter_pairs
 from ._kinds import MAX_ELEMENTS, MAX_SUBSTEPS, TINY, chord, f64
 from ._model_kinds import ModelKind, register_model_kind
 from ._predict import Predictor
@@ -40,10 +40,10 @@ def _resonance(dataset, output: str) -> tuple[float, float, float]:
     dt = min(r[2] for r in recs)
     recs = [r for r in recs if r[2] == dt]
     best = None
-    for _, omega, zeta in _dynamics_candidates(recs, 2, MAX_ROWS):
+    for _, omega, zeta in dynamics_candidates(recs, 2, MAX_ROWS):
         if omega.size != 1 or not (np.isfinite(omega[0]) and np.isfinite(zeta[0])):
             continue
-        u = np.concatenate([_filter_pairs(v, dt, omega, zeta) for v, _, _ in recs])
+        u = np.concatenate([filter_pairs(v, dt, omega, zeta) for v, _, _ in recs])
         y = np.concatenate([np.asarray(y) - np.mean(y) for _, y, _ in recs])
         u = u - np.mean(u)
         g = chord(u, y)
@@ -157,13 +157,13 @@ class BoucWenOscillatorKind(ModelKind):
 
 
 def _error(pred, model, experiments) -> float:
-    from ._predict import _as_arrays, _run
+    from ._predict import as_arrays, run_predictor
 
     total = 0.0
     for e in experiments:
-        data = _as_arrays([e], pred.inputs, model.m.dtype)
+        data = as_arrays([e], pred.inputs, model.m.dtype)
         y = np.asarray(e["displacement"])
-        err = np.asarray(_run(pred, model, data)["displacement"]) - y
+        err = np.asarray(run_predictor(pred, model, data)["displacement"]) - y
         total += float(np.sum((err / max(float(np.ptp(y)), TINY)) ** 2))
     return total if np.isfinite(total) else np.inf
 
@@ -281,13 +281,13 @@ class ElectromechanicalKind(ModelKind):
             # x = (T/k) F(s)[V - sum_j a_j S_j[V]]: coefficients >= 0 by NNLS (with a free offset)
             drives = [np.column_stack([r[0], -_stops(r[0], widths)]) if widths.size else r[0][:, None]
                       for r in recs]
-            cols = np.concatenate([_filter_pairs(d, dt, omega, zeta) for d in drives])
+            cols = np.concatenate([filter_pairs(d, dt, omega, zeta) for d in drives])
             cols = np.column_stack([cols, np.ones(cols.shape[0]), -np.ones(cols.shape[0])])
             coef, res = scipy.optimize.nnls(cols, sign * x)
             return coef[: widths.size + 1], res
 
         # each candidate resonance of the cold start's estimate; the one with the smallest residual
-        cands = [(w, z) for _, w, z in _dynamics_candidates(recs, 2, MAX_ROWS) if w.size == 1]
+        cands = [(w, z) for _, w, z in dynamics_candidates(recs, 2, MAX_ROWS) if w.size == 1]
         best = None
         for omega, zeta in cands + [(np.array([0.2 * np.pi / dt]), np.array([0.7]))]:
             coef, res = solve(grid, omega, zeta)

@@ -105,7 +105,7 @@ def default_predictor(model) -> Predictor:
     )
 
 
-def _as_arrays(experiments, inputs, dtype) -> ExperimentArrays:
+def as_arrays(experiments, inputs, dtype) -> ExperimentArrays:
     """`experiments` run back to back as one record (their own times are not used: only the common step)."""
     v_in = np.concatenate([e.v_in for e in experiments])
     n = v_in.shape[0]
@@ -118,7 +118,7 @@ def _as_arrays(experiments, inputs, dtype) -> ExperimentArrays:
 
 
 @eqx.filter_jit
-def _run(predictor, model, data):
+def run_predictor(predictor, model, data):
     return predictor(model, data)
 
 
@@ -180,7 +180,7 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
                 f"{e._label()} lacks the column(s) {missing} the model reads as input")
     model = pj.unwrap(model)
     dtype = jnp.result_type(*[x for x in jax.tree_util.tree_leaves(model) if eqx.is_inexact_array(x)] or [0.0])
-    out = _run(predictor, model, _as_arrays(records, predictor.inputs, dtype))
+    out = run_predictor(predictor, model, as_arrays(records, predictor.inputs, dtype))
     start = sum(e.n for e in history)
     preds = {c: np.asarray(out[c])[start:] for c in predictor.outputs}
     bad = [c for c, y in preds.items() if not np.all(np.isfinite(y))]

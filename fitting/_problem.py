@@ -18,7 +18,7 @@ from piezojax._dtypes import common_float_dtype
 from ._predict import ExperimentArrays, Predictor, default_predictor, predict
 
 
-def _is_reparam(x) -> bool:
+def is_reparam(x) -> bool:
     return isinstance(x, pj.AbstractReparam)
 
 
@@ -32,7 +32,7 @@ def _key_name(k) -> str:
     return "." + str(getattr(k, "name", getattr(k, "key", k)))
 
 
-def _path_string(path) -> str:
+def path_string(path) -> str:
     """`(GetAttrKey('hysteresis'), GetAttrKey('weights'))` → `"hysteresis.weights"` (reparam `.raw` dropped)."""
     s = "".join(_key_name(k) for k in path)
     return s[1:] if s.startswith(".") else s
@@ -42,15 +42,15 @@ def parameter_paths(model) -> dict[str, Any]:
     """The model's parameters by path (`"hysteresis.weights"`, `"dynamics.omega"`): every inexact array leaf, a
     reparametrised one (`pj.Positive`, ...) listed once under the path of its wrapper, with its constrained value."""
     out = {}
-    for path, leaf in jtu.tree_flatten_with_path(model, is_leaf=_is_reparam)[0]:
-        if _is_reparam(leaf):
-            out[_path_string(path)] = leaf.unwrap()
+    for path, leaf in jtu.tree_flatten_with_path(model, is_leaf=is_reparam)[0]:
+        if is_reparam(leaf):
+            out[path_string(path)] = leaf.unwrap()
         elif eqx.is_inexact_array(leaf):
-            out[_path_string(path)] = leaf
+            out[path_string(path)] = leaf
     return out
 
 
-def _matches(path: str, selector: str) -> bool:
+def matches(path: str, selector: str) -> bool:
     return path == selector or path.startswith(selector + ".") or path.startswith(selector + "[")
 
 
@@ -64,10 +64,10 @@ def free_mask(model, free=None):
     a setting is freed only when named itself (`"hysteresis.smoothing"`, `lambda m: m.hysteresis.smoothing`).
     """
     available = list(parameter_paths(model))
-    settings = [_path_string(path) for path in pj.setting_key_paths(model)]
+    settings = [path_string(path) for path in pj.setting_key_paths(model)]
 
     def is_setting(p):
-        return any(_matches(p, s) for s in settings)
+        return any(matches(p, s) for s in settings)
 
     if free is None:
         chosen = {p for p in available if not is_setting(p)}
@@ -75,7 +75,7 @@ def free_mask(model, free=None):
         marker = jtu.tree_map(lambda x: 0, model)
 
         def select(sub):  # 1: a parameter selected itself, 2: part of a selected block (whose settings stay fixed)
-            alone = _is_reparam(sub) or not isinstance(sub, eqx.Module | list | tuple | dict)
+            alone = is_reparam(sub) or not isinstance(sub, eqx.Module | list | tuple | dict)
             return jtu.tree_map(lambda _: 1 if alone else 2, sub)
 
         try:
@@ -83,7 +83,7 @@ def free_mask(model, free=None):
         except Exception as e:  # noqa: BLE001 - re-raised with the argument named
             raise PiezojaxValueError(f"`free`: the selector could not be applied to the model ({e})") from e
         mask = jtu.tree_map_with_path(
-            lambda path, m, x: (m == 1 or (m == 2 and not is_setting(_path_string(path)))) and eqx.is_inexact_array(x),
+            lambda path, m, x: (m == 1 or (m == 2 and not is_setting(path_string(path)))) and eqx.is_inexact_array(x),
             marked, model,
         )
         if not any(jtu.tree_leaves(mask)):
@@ -96,7 +96,7 @@ def free_mask(model, free=None):
         for sel in free:
             if not isinstance(sel, str):
                 raise PiezojaxValueError(f"`free` entries must be parameter paths (str), got {sel!r}")
-            hits = [p for p in available if _matches(p, sel) and (p == sel or not is_setting(p))]
+            hits = [p for p in available if matches(p, sel) and (p == sel or not is_setting(p))]
             if not hits:
                 raise PiezojaxValueError(
                     f"`free`: no parameter {sel!r} in the model; available: {', '.join(available)}"
@@ -106,12 +106,12 @@ def free_mask(model, free=None):
         raise PiezojaxValueError("`free` selects no parameter: nothing to fit")
 
     def mark(path, leaf):
-        p = _path_string(path)
-        if _is_reparam(leaf):
+        p = path_string(path)
+        if is_reparam(leaf):
             return jtu.tree_map(lambda x: p in chosen and eqx.is_inexact_array(x), leaf)
         return p in chosen and eqx.is_inexact_array(leaf)
 
-    return jtu.tree_map_with_path(mark, model, is_leaf=_is_reparam)
+    return jtu.tree_map_with_path(mark, model, is_leaf=is_reparam)
 
 
 class _Group(eqx.Module):
@@ -262,22 +262,22 @@ class ProblemCore(eqx.Module):
         return jnp.concatenate(r_parts), g_sum, h_sum
 
 
-def _free_physical_tree(params, mask) -> dict[str, Array]:
+def free_physical_tree(params, mask) -> dict[str, Array]:
     """The free leaves of `params` (a model with reparametrisation wrappers) in physical units, by path."""
-    flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
-    masks = jtu.tree_leaves(mask, is_leaf=_is_reparam)
+    flat = jtu.tree_flatten_with_path(params, is_leaf=is_reparam)[0]
+    masks = jtu.tree_leaves(mask, is_leaf=is_reparam)
     out = {}
     for (path, leaf), m in zip(flat, masks):
-        if _is_reparam(leaf):
+        if is_reparam(leaf):
             if jtu.tree_leaves(m.raw) == [True]:
-                out[_path_string(path)] = leaf.unwrap()
+                out[path_string(path)] = leaf.unwrap()
         elif m is True:
-            out[_path_string(path)] = leaf
+            out[path_string(path)] = leaf
     return out
 
 
 def _physical(core: ProblemCore, mask, u):
-    tree = _free_physical_tree(core.params(u), mask)
+    tree = free_physical_tree(core.params(u), mask)
     return jnp.concatenate([jnp.ravel(v) for v in tree.values()])
 
 
@@ -615,7 +615,7 @@ class Problem:
     def parameter_names(self) -> list[str]:
         """Names of the free physical parameters, one per scalar (`"hysteresis.weights[3]"`), in `physical` order."""
         names = []
-        for path, value in _free_physical_tree(self.model, self.mask).items():
+        for path, value in free_physical_tree(self.model, self.mask).items():
             a = np.asarray(value)
             names += [path] if a.ndim == 0 else [f"{path}[{j}]" for j in range(a.size)]
         return names

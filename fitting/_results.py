@@ -242,14 +242,14 @@ def _at_bound(problem, u) -> np.ndarray:
     `pj.Fractions`, negative poles) pressed against that bound, i.e. within 1e-9 of the largest magnitude in its
     leaf of zero (a dead play weight, a vanished lag fraction)."""
     from ._kinds import Negative
-    from ._problem import _free_physical_tree, _is_reparam, _path_string
+    from ._problem import free_physical_tree, is_reparam, path_string
 
     flags = []
     params = problem.params(u)
-    flat = jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]
+    flat = jtu.tree_flatten_with_path(params, is_leaf=is_reparam)[0]
     zero_bounded = (pj.Positive, pj.OrderedPositive, pj.Fractions, Negative)
-    reparam = {_path_string(p) for p, leaf in flat if isinstance(leaf, zero_bounded)}
-    for path, value in _free_physical_tree(params, problem.mask).items():
+    reparam = {path_string(p) for p, leaf in flat if isinstance(leaf, zero_bounded)}
+    for path, value in free_physical_tree(params, problem.mask).items():
         a = np.abs(np.ravel(np.asarray(value, dtype=float)))
         top = a.max() if a.size else 0.0
         flags += list((a <= 1e-9 * top) & (path in reparam) & (a.size > 1)) if top > 0 else [False] * a.size
@@ -269,14 +269,14 @@ def model_structure(params) -> list[str]:
     """`"path: kind"` for every parameter leaf of `params`, the kind a reparametrisation's class name (e.g.
     `"hysteresis.thresholds: OrderedPositive"`) or `"array"`: what `load_model` checks `like` against, since the
     saved leaves alone cannot tell a constrained model's internal values from physical ones."""
-    from ._problem import _is_reparam, _path_string
+    from ._problem import is_reparam, path_string
 
     out = []
-    for path, leaf in jtu.tree_flatten_with_path(params, is_leaf=_is_reparam)[0]:
-        if _is_reparam(leaf):
-            out.append(f"{_path_string(path)}: {type(leaf).__name__}")
+    for path, leaf in jtu.tree_flatten_with_path(params, is_leaf=is_reparam)[0]:
+        if is_reparam(leaf):
+            out.append(f"{path_string(path)}: {type(leaf).__name__}")
         elif eqx.is_array(leaf):
-            out.append(f"{_path_string(path)}: array")
+            out.append(f"{path_string(path)}: array")
     return out
 
 

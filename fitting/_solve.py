@@ -18,7 +18,7 @@ import optimistix as optx
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
-from ._problem import Problem, _matches, _path_string
+from ._problem import Problem, matches, path_string
 from ._results import FitResult, summarise
 from ._solver import (
     AbstractNormalSolver,
@@ -37,7 +37,7 @@ class PrecisionWarning(UserWarning):
     """A fit runs in single precision (JAX's 64-bit mode is off): see `solve`."""
 
 
-def _caller_level() -> int:
+def caller_level() -> int:
     """`stacklevel` for a warning issued by the caller of this function: the first frame outside `fitting`."""
     frame, level = sys._getframe(1), 1
     while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
@@ -68,7 +68,7 @@ def set_smoothing(model, smoothing: float):
 
 
 
-def _solver(method, rtol, atol, ftol, linear_solver) -> AbstractNormalSolver:
+def make_solver(method, rtol, atol, ftol, linear_solver) -> AbstractNormalSolver:
     if isinstance(method, AbstractNormalSolver):
         if linear_solver is not None:
             raise PiezojaxValueError("`linear_solver` is a setting of the built-in methods; with a solver instance as "
@@ -188,7 +188,7 @@ def solve(
         raise PiezojaxValueError(f"`max_steps` must be an integer >= 1, got {max_steps!r}")
     if isinstance(kink_restarts, bool) or not isinstance(kink_restarts, int | np.integer) or kink_restarts < 0:
         raise PiezojaxValueError(f"`kink_restarts` must be an integer >= 0, got {kink_restarts!r}")
-    solver = _solver(method, rtol, atol, ftol, linear_solver)
+    solver = make_solver(method, rtol, atol, ftol, linear_solver)
     meter = as_progress_meter(progress)
     if smoothing is not None and (isinstance(smoothing, str | bytes) or np.ndim(smoothing) != 1):
         raise PiezojaxValueError(f"`smoothing` must be a sequence of continuation levels (e.g. (0.05, 0.0)) or None, "
@@ -200,8 +200,8 @@ def solve(
         if s is not None and not (np.isfinite(s) and s >= 0):
             raise PiezojaxValueError(f"`smoothing` levels must be finite and >= 0, got {s}")
     if smoothing is not None:
-        settings = [_path_string(path) for path in pj.setting_key_paths(problem.model)]
-        freed = [n for n in problem.parameter_names() if any(_matches(n, st) for st in settings)]
+        settings = [path_string(path) for path in pj.setting_key_paths(problem.model)]
+        freed = [n for n in problem.parameter_names() if any(matches(n, st) for st in settings)]
         if freed:
             raise PiezojaxValueError(f"`smoothing` levels set {freed[0]!r}, which `free` also fits: fix it (leave it "
                                      "out of `free`) or give no levels")
@@ -218,7 +218,7 @@ def solve(
             "(about 7 digits: costs and steps below ~1e-7 relative are rounding, standard errors unreliable). Call "
             "`jax.config.update('jax_enable_x64', True)` before creating models and data (the command line does); "
             "to fit in single precision on purpose, filter `fitting.PrecisionWarning`.",
-            PrecisionWarning, stacklevel=_caller_level())
+            PrecisionWarning, stacklevel=caller_level())
     t0 = time.perf_counter()
     frozen = problem.frozen
     per_start: list[list] = [[] for _ in range(u.shape[0])]

@@ -443,7 +443,7 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
     import fitting
 
     from ._data import SUPPORTED_SUFFIXES, read_file_marker
-    from .files import _check_replaceable_directory
+    from .files import check_replaceable_directory
 
     is_file = command == "simulate"
     what = "output file" if is_file else "output folder"
@@ -471,7 +471,7 @@ def _check_output(path: str, overwrite: bool, command: str, *, inputs=(), fit_fo
             raise _error(f"refusing to write the {what} {str(p)!r}: it {'is' if rp == rd else 'holds'} the fitted "
                          f"model folder {str(fit_folder)!r}")
     if not is_file:
-        _check_replaceable_directory(p, overwrite, command, option="--overwrite")
+        check_replaceable_directory(p, overwrite, command, option="--overwrite")
         return p
     if not p.exists():
         return p

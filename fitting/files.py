@@ -433,7 +433,7 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
     ```
     """
     p = check_writable(path)
-    _check_replaceable_directory(p, overwrite, kind)
+    check_replaceable_directory(p, overwrite, kind)
     _claim(p)
     tmp = Path(tempfile.mkdtemp(dir=p.parent, prefix=_temp_prefix(p.name)))
     try:
@@ -467,7 +467,7 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
             )
         else:
             # what appeared meanwhile must qualify too; what a user added to it is dealt with after the swap
-            _check_replaceable_directory(p, True, kind, look_for_added=False)
+            check_replaceable_directory(p, True, kind, look_for_added=False)
             if _exchange(tmp, p):
                 old = tmp  # after the exchange the temporary name holds the old directory
             else:
@@ -510,7 +510,7 @@ def _is_empty_directory(p: Path) -> bool:
         return False
 
 
-def _check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True", *,
+def check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True", *,
                                  look_for_added: bool = True) -> None:
     """Refuse, before any work, an output directory that must not be created or replaced (see `atomic_directory`);
     `option` is how the caller's user asks to overwrite (`"--overwrite"` on the command line); `look_for_added=False`:

@@ -16,10 +16,10 @@ import piezojax as pj
 from experiments import fit_recovery as fr
 from fitting._initialise import (
     _arx_pairs,
-    _filter_pairs,
     _spectral_pairs,
     cold_start_actuator,
     cold_start_free,
+    filter_pairs,
 )
 from piezojax._creep.lags import lag_columns
 from piezojax._hysteresis.initialise import nnls_gram, row_subset
@@ -50,7 +50,7 @@ def test_lag_and_dynamics_columns_match_library(rng):
     omega, zeta = np.asarray([900.0, 3000.0]), np.asarray([0.1, 0.5])
     ref = pj.StableTransferFunction(1.0, omega=omega, zeta=zeta).simulate(v, dt)
     np.testing.assert_allclose(
-        _filter_pairs(v, dt, omega, zeta), np.asarray(ref), rtol=1e-9, atol=1e-10 * np.abs(ref).max()
+        filter_pairs(v, dt, omega, zeta), np.asarray(ref), rtol=1e-9, atol=1e-10 * np.abs(ref).max()
     )
 
 
@@ -62,7 +62,7 @@ def resonant_records():
     records = []
     for _ in range(3):
         u = scipy.signal.lfilter(*scipy.signal.butter(2, 0.3), r.standard_normal(4000))
-        y = _filter_pairs(u, dt, np.asarray([w]), np.asarray([z]))
+        y = filter_pairs(u, dt, np.asarray([w]), np.asarray([z]))
         records.append((u, y + 0.01 * np.std(y) * r.standard_normal(y.size), dt))
     return records, w, z
 

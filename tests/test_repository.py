@@ -75,6 +75,10 @@ ALLOWED = {
 }
 
 
+FITTING_ALLOWED = {"piezojax._checks", "piezojax._dtypes", "piezojax._config", "piezojax._creep.lags",
+                   "piezojax._hysteresis.initialise"}
+
+
 def test_layers_import_only_what_the_layout_allows():
     problems = []
     for folder, allowed in ALLOWED.items():
@@ -97,6 +101,13 @@ def test_layers_import_only_what_the_layout_allows():
         for name in _imports(path):
             if name.startswith("piezojax._benches"):
                 problems.append(f"{path.relative_to(ROOT)} imports {name}")
+            if path.parent.name == "fitting" and name.startswith("piezojax._") and not name.startswith(
+                    "piezojax.__") and not any(
+                    name == a or name.startswith(a + ".") for a in FITTING_ALLOWED):
+                problems.append(f"{path.relative_to(ROOT)} imports {name} (README, Layout: fitting)")
+            if path.parent.name == "fitting" and name.startswith("fitting.") and name.rsplit(".", 1)[1][:1] == "_" \
+                    and name.count(".") == 2:
+                problems.append(f"{path.relative_to(ROOT)} imports the private name {name} of another module")
             if path.parent.name == "experiments" and name.startswith("fitting._"):
                 problems.append(f"{path.relative_to(ROOT)} imports {name} (use fitting's public API)")
     assert not problems, "\n".join(problems)
