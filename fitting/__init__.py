@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 _EXPORTS = {
     "._config": ("ModelConfig", "load_config", "parse_config"),
     "._data": (
-        "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "PaddedData", "load_experiment",
+        "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "load_experiment",
         "save_experiment",
     ),
     "._fleet": ("FleetResult", "fit_fleet"),
@@ -82,7 +82,6 @@ if TYPE_CHECKING:  # the same names for static analysis
         UNITS as UNITS,
         Dataset as Dataset,
         Experiment as Experiment,
-        PaddedData as PaddedData,
         load_experiment as load_experiment,
         save_experiment as save_experiment,
     )

@@ -20,7 +20,6 @@ import warnings
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
-import equinox as eqx
 import numpy as np
 
 from piezojax._checks import PiezojaxValueError
@@ -888,33 +887,6 @@ def save_experiment(
 # ----------------------------------------------------------------------------------------------------------- dataset
 
 
-class PaddedData(eqx.Module):
-    """Experiments of different lengths stacked into `(E, N_max)` arrays, zero padded, with masks.
-
-    A pytree (numpy float64 leaves; the engine casts them), so it can be passed to `jit`/`vmap`.
-
-    **Fields:**
-
-    - `t`, `v_in`: `(E, N_max)`, zero beyond each experiment's length.
-    - `channels`: dict channel → `(E, N_max)` values (zero where padded or not measured).
-    - `masks`: dict channel → `(E, N_max)` bool, True only where the experiment measured that channel and the sample
-      is real.
-    - `valid`: `(E, N_max)` bool, True for the real samples (`k < lengths[e]`).
-    - `lengths`: `(E,)` int, number of samples per experiment.
-    - `dt`: `(E,)` sampling steps [s].
-    - `names`: the experiments' names (static).
-    """
-
-    t: np.ndarray
-    v_in: np.ndarray
-    channels: dict[str, np.ndarray]
-    masks: dict[str, np.ndarray]
-    valid: np.ndarray
-    lengths: np.ndarray
-    dt: np.ndarray
-    names: tuple[str, ...] = eqx.field(static=True)
-
-
 def _check_channel_names(channels, what: str) -> tuple[str, ...]:
     if isinstance(channels, str):
         channels = (channels,)
@@ -931,8 +903,8 @@ def _check_channel_names(channels, what: str) -> tuple[str, ...]:
 class Dataset(Sequence):
     """An immutable, ordered collection of `Experiment`s with unique names.
 
-    Experiments may differ in length, sampling step and measured channels. `groups()` gathers those the engine can
-    `vmap` together (equal length, step and channel set); `padded()` stacks all of them with masks.
+    Experiments may differ in length, sampling step and measured channels (a `fitting.Problem` pads and groups them
+    for `vmap`).
 
     **Arguments:**
 
@@ -945,7 +917,7 @@ class Dataset(Sequence):
 
     ```python
     ds = Dataset.from_files(["step_25V.csv", "step_50V.csv"])
-    ds.require(["v_out", "displacement"]); batch = ds.padded()
+    ds.require(["v_out", "displacement"]); ds["step_25V"].v_in
     ```
     """
 
@@ -1065,64 +1037,6 @@ class Dataset(Sequence):
             detail = "; ".join(f"{self[k]._label()} lacks {v}" for k, v in lacking.items())
             raise PiezojaxValueError(f"required channel(s) {list(req)} missing: {detail}")
         return self
-
-    def groups(self, dt_rtol: float = 1e-9) -> list[list[int]]:
-        """Indices of experiments that can be `vmap`ped together: equal `n`, equal channel set and equal `dt`
-        (to relative tolerance `dt_rtol`). Groups are in order of first appearance.
-        """
-        groups: list[list[int]] = []
-        keys: list[tuple[int, tuple[str, ...], float]] = []
-        for i, e in enumerate(self._experiments):
-            for g, (n, ch, dt) in zip(groups, keys):
-                if e.n == n and e.channel_names == ch and abs(e.dt - dt) <= dt_rtol * dt:
-                    g.append(i)
-                    break
-            else:
-                groups.append([i])
-                keys.append((e.n, e.channel_names, e.dt))
-        return groups
-
-    def padded(self, channels: str | Iterable[str] | None = None) -> PaddedData:
-        """Stack all experiments into `(E, N_max)` arrays, zero padded, with per-channel masks.
-
-        **Arguments:**
-
-        - `channels`: the channels to include (default: `self.channels`); each must be measured by at least one
-          experiment.
-
-        **Returns:**
-
-        A `PaddedData`; `masks[c][e, k]` is True iff experiment `e` measured `c` and `k < lengths[e]`.
-        """
-        chans = self.channels if channels is None else _check_channel_names(channels, "channels")
-        none = [c for c in chans if not any(c in e.channels for e in self._experiments)]
-        if none:
-            raise PiezojaxValueError(f"`channels`: {none} measured in none of the experiments {list(self.names)}")
-        E = len(self)
-        N = max(e.n for e in self._experiments)
-        lengths = np.array([e.n for e in self._experiments], dtype=np.int64)
-        valid = np.arange(N)[None, :] < lengths[:, None]
-        t = np.zeros((E, N))
-        v_in = np.zeros((E, N))
-        vals = {c: np.zeros((E, N)) for c in chans}
-        masks = {c: np.zeros((E, N), dtype=bool) for c in chans}
-        for i, e in enumerate(self._experiments):
-            t[i, : e.n] = e.t
-            v_in[i, : e.n] = e.v_in
-            for c in chans:
-                if c in e.channels:
-                    vals[c][i, : e.n] = e.channels[c]
-                    masks[c][i, : e.n] = True
-        return PaddedData(
-            t=t,
-            v_in=v_in,
-            channels=vals,
-            masks=masks,
-            valid=valid,
-            lengths=lengths,
-            dt=np.array([e.dt for e in self._experiments]),
-            names=self.names,
-        )
 
     def __repr__(self) -> str:
         inner = ", ".join(f"{e.name!r} (n={e.n})" for e in self._experiments[:4])

@@ -6,7 +6,6 @@ import os
 import zipfile
 
 import h5py
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -16,7 +15,6 @@ from fitting._data import (
     CHANNELS,
     Dataset,
     Experiment,
-    PaddedData,
     load_experiment,
     save_experiment,
 )
@@ -412,45 +410,6 @@ def test_dataset_require(dataset):
         dataset.require(["temp"])
 
 
-def test_dataset_groups(dataset):
-    # a, c, e: n=100, dt=1e-4, {v_out, displacement} (channel order and t0 do not matter); b and d differ.
-    assert dataset.groups() == [[0, 2, 4], [1], [3]]
-    # every group can be stacked and vmapped
-    for g in dataset.groups():
-        batch = jnp.stack([jnp.asarray(dataset[i].v_in) for i in g])
-        assert jax.vmap(jnp.sum)(batch).shape == (len(g),)
-
-
-def test_dataset_padded(dataset):
-    pad = dataset.padded()
-    assert isinstance(pad, PaddedData)
-    assert pad.t.shape == pad.v_in.shape == (5, 100)
-    np.testing.assert_array_equal(pad.lengths, [100, 60, 100, 100, 100])
-    np.testing.assert_allclose(pad.dt, [1e-4, 1e-4, 1e-4, 2e-4, 1e-4], rtol=1e-12)
-    assert set(pad.masks) == {"v_out", "displacement", "force"}
-    np.testing.assert_array_equal(pad.masks["force"].sum(axis=1), [0, 60, 0, 0, 0])
-    np.testing.assert_array_equal(pad.masks["v_out"].sum(axis=1), [100, 0, 100, 100, 100])
-    np.testing.assert_array_equal(pad.valid.sum(axis=1), pad.lengths)
-    np.testing.assert_array_equal(pad.t[1, :60], dataset["b"].t)
-    np.testing.assert_array_equal(pad.t[1, 60:], 0.0)
-    np.testing.assert_array_equal(pad.channels["force"][1, :60], dataset["b"]["force"])
-    np.testing.assert_array_equal(pad.channels["force"][0], 0.0)
-    np.testing.assert_array_equal(pad.channels["displacement"][4], dataset["e"]["displacement"])
-
-    # It is a pytree the engine can jit/vmap over: masked mean square per experiment.
-    @jax.jit
-    def ms(p):
-        m = p.masks["v_out"]
-        return jax.vmap(lambda x, k: jnp.sum(jnp.where(k, x**2, 0.0)))(p.channels["v_out"], m)
-
-    want = [np.sum(dataset[n]["v_out"] ** 2) if dataset[n].has("v_out") else 0.0 for n in dataset.names]
-    np.testing.assert_allclose(ms(pad), want, rtol=1e-12)
-    sub = dataset.padded(["force"])
-    assert set(sub.channels) == {"force"}
-    with pytest.raises(PiezojaxValueError, match=r"\['charge'\] measured in none"):
-        dataset.padded(["charge"])
-
-
 def test_dataset_from_files(tmp_path, rng):
     (tmp_path / "r1").mkdir()
     (tmp_path / "r2").mkdir()
@@ -691,7 +650,7 @@ def test_pickle_and_replace(rng, dataset):
     _assert_same(e, back)
     _assert_same(e, copy.deepcopy(e))
     ds = pickle.loads(pickle.dumps(dataset))
-    assert ds.names == dataset.names and ds.groups() == dataset.groups()
+    assert ds.names == dataset.names and [e.n for e in ds] == [e.n for e in dataset]
     # dataclasses.replace revalidates
     assert dataclasses.replace(e, name="renamed").name == "renamed"
     with pytest.raises(PiezojaxValueError, match=r"column 'v_in' has 3 samples"):
