@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._checks import PiezojaxValueError
 from .._circuits.smart_stack import SmartStackCircuit
 from .._control.base import AbstractPlant
+from .._creep.lags import zoh_lag_coefficients
 from .._hysteresis.bouc_wen import BoucWen
 from .._linear.transfer_function import TransferFunction
 from .._observers.sensor_layer import SensorLayerObserver
@@ -208,7 +209,7 @@ class ChenStagePlant(AbstractPlant):
     """
 
     bench: ChenBench
-    coefficients: tuple[Array, ...]
+    coefficients: tuple[tuple[Array, Array], ...]
     stage: tuple[Array, Array, Array, Array]
     rest: tuple[Array, ...]
     dt: float = eqx.field(static=True)
@@ -231,9 +232,9 @@ class ChenStagePlant(AbstractPlant):
         self.v_min, self.v_max = float(v_min), float(v_max)
         dtype = bench.stroke.dtype
         h = jnp.asarray(self.dt / substeps, dtype)
-        self.coefficients = tuple(
-            jnp.exp(-h / tau) for tau in (bench.electrical_time_constant, bench.creep_time_constant,
-                                          bench.amplifier_time_constant)
+        self.coefficients = tuple(  # (a, 1 - a) of each ZOH lag over a substep
+            zoh_lag_coefficients(tau, h) for tau in (bench.electrical_time_constant, bench.creep_time_constant,
+                                                     bench.amplifier_time_constant)
         )
         s = bench.stack
         zero = jnp.zeros((), dtype)
@@ -273,7 +274,7 @@ class ChenStagePlant(AbstractPlant):
 
     def _advance(self, state, command):
         b, s = self.bench, self.bench.stack
-        a_e, a_c, a_a = self.coefficients
+        (a_e, b_e), (a_c, b_c), (a_a, b_a) = self.coefficients
         Ad, Bd, Cd, Dd = self.stage
         v_a = self.drive(jnp.asarray(command, b.stroke.dtype))
         k_ser = s.series_stiffness()
@@ -281,14 +282,14 @@ class ChenStagePlant(AbstractPlant):
 
         def sub(carry, _):
             v_p, bw, creep, xi, amp, _, _, _ = carry
-            v_p = a_e * v_p + (1 - a_e) * v_a
+            v_p = a_e * v_p + b_e * v_a
             bw, h = b.hysteresis.step(bw, v_p)
-            creep = a_c * creep + (1 - a_c) * h
+            creep = a_c * creep + b_c * h
             x = b.stroke * (h + b.creep_fraction * creep)
             force = k_ser * x + s.k_e * (Cd @ xi + Dd * x)
             xi = Ad @ xi + Bd * x
             signal = gain * force
-            amp = a_a * amp + (1 - a_a) * signal
+            amp = a_a * amp + b_a * signal
             return (v_p, bw, creep, xi, amp, x, signal - amp + s.crosstalk * v_a, force), None
 
         carry, _ = jax.lax.scan(sub, state[1:], None, length=self.substeps)

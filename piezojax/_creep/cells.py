@@ -14,6 +14,7 @@ from .._linear.discretise import DiscreteStateSpace
 from .base import AbstractCreep
 from .kelvin_voigt import KelvinVoigtCreep
 from .lag import LagCreep
+from .lags import zoh_lag_coefficients
 from .linear import LinearCreep
 
 # the creep types `zoh_cell` samples
@@ -30,8 +31,7 @@ class LagCell(eqx.Module):
     d: Array
 
     def __init__(self, c: Array, tau: Array, d: Array, dt: Array):
-        x = dt / tau
-        self.a, self.one_minus_a = jnp.exp(-x), -jnp.expm1(-x)
+        self.a, self.one_minus_a = zoh_lag_coefficients(tau, dt)
         self.c, self.d = c, d
 
     @property

@@ -130,6 +130,13 @@ def _check_hold(hold: str) -> None:
         raise PiezojaxValueError(f"`hold` must be one of {HOLDS}, got {hold!r}")
 
 
+def zoh_lag_coefficients(tau: Array, dt: Array) -> tuple[Array, Array]:
+    r"""$a = e^{-dt/\tau}$ and $1 - a$ (as $-\mathrm{expm1}(-dt/\tau)$, without cancellation for slow lags): the
+    ZOH lag $x_{k+1} = a x_k + (1 - a) u_k$. Used by `lag_sum`, the creep cells and the benches' per-sample lags."""
+    x = dt / tau
+    return jnp.exp(-x), -jnp.expm1(-x)
+
+
 def lag_sum(c: Array, tau: Array, u: Array, dt: Array, hold: str = "zoh") -> Array:
     r"""$\sum_i c_i\,\mathcal{L}_{\tau_i}[u]$: unit-gain first-order lags $1/(1 + \tau_i s)$ of `u`, from rest,
     weighted by `c` (see the module docstring for `hold`).
@@ -143,8 +150,7 @@ def lag_sum(c: Array, tau: Array, u: Array, dt: Array, hold: str = "zoh") -> Arr
     dtype = common_float_dtype(c, tau, u, dt)
     c, tau, u, dt = (jnp.asarray(z, dtype) for z in (c, tau, u, dt))
     x = dt / tau
-    a = jnp.exp(-x)
-    one_minus_a = -jnp.expm1(-x)
+    a, one_minus_a = zoh_lag_coefficients(tau, dt)
     zero = jnp.zeros_like(a)
     if hold == "zoh":
         return lag_scan(a, one_minus_a, zero, c, u, u)
