@@ -205,11 +205,10 @@ def exact_everywhere(smoothing: Array) -> Array:
     under `vmap` over operators with a mapped `smoothing` (a fleet of models stacked on an axis), whether it is 0 for
     every one of them, unmapped.
 
-    Why: a `cond` on a mapped predicate runs both of its branches, here the general loop, sequential and an order of
-    magnitude slower per sample, beside the exact one: measured on 2 CPU cores, a PI + creep + resonance model
-    stacked 64 times simulated 4000 samples in 55 ms against 12.4–12.6 ms with one smoothing; on an H200 a fleet's
-    linearisation took 35x longer. A fleet mixing exact and smoothed operators runs the general loop for every one,
-    which is the exact operator (values and derivatives) wherever `smoothing` is 0 (`play_step`)."""
+    Why: a `cond` on a mapped predicate runs both of its branches, here the general loop, sequential and several
+    times slower per sample (README, "Fleets"), beside the exact one. A fleet mixing exact and smoothed operators
+    runs the general loop for every one, which is the exact operator (values and derivatives) wherever `smoothing`
+    is 0 (`play_step`)."""
     return for_every_mapped(jax.lax.stop_gradient(smoothing) == 0)
 
 
