@@ -59,7 +59,10 @@ def butterworth_zoh(order: int, cutoff: Array, u: Array, dt: Array) -> Array:
     cutoff: $\tilde r_k$ and $q_k$ are constants, and only $z = \omega_c\,dt$ enters the recurrence. Mode $k$ is
     $\dot x_k = \omega_c(q_k x_k + u)$, exactly $x_{k+1} = a_k x_k + b_k u_k$ with $a_k = e^{q_k z}$,
     $b_k = (a_k - 1)/q_k = \bar q_k (a_k - 1)$, and $y_k = \sum_k \tilde r_k x_k$ (a conjugate pair as one complex
-    mode, $2\,\mathrm{Re}$, written in real arithmetic; $a_k - 1$ without cancellation for small $z$).
+    mode, $2\,\mathrm{Re}$, written in real arithmetic; $a_k - 1$ without cancellation for small $z$). Accurate to
+    rounding at the scale of the input (tested against the closed-form step response for $N \le 8$, and for
+    $z = 10^{-4}$ over $6\cdot10^4$ samples); while the filter has barely responded ($\omega_c t \ll 1$) its tiny
+    output is the difference of the modes', so its relative accuracy is lower there than the cascade's.
 
     Why: under `jax.jacfwd` every parameter direction runs through the filter (the observer's force term); the
     modal update costs about half the dense one per direction (measured in `experiments.bench_observer`). Where
