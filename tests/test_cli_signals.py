@@ -28,7 +28,7 @@ PHASES = {
     "imports": (None, (0.05, 1.5), 4),
     "initial values": ("initial values from the data", (0.0, 0.3), 3),
     "fitting": ("Levenberg", (0.0, 2.0), 3),
-    "figures": ("writing", (0.0, 0.6), 20),
+    "figures": ("writing", (0.0, 0.6), 10),  # each trial is a whole process (~7 s): the suite's budget
 }
 
 
