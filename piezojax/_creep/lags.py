@@ -149,12 +149,12 @@ def lag_sum(c: Array, tau: Array, u: Array, dt: Array, hold: str = "zoh") -> Arr
     _check_hold(hold)
     dtype = common_float_dtype(c, tau, u, dt)
     c, tau, u, dt = (jnp.asarray(z, dtype) for z in (c, tau, u, dt))
-    x = dt / tau
     a, one_minus_a = zoh_lag_coefficients(tau, dt)
     zero = jnp.zeros_like(a)
     if hold == "zoh":
         return lag_scan(a, one_minus_a, zero, c, u, u)
     if hold == "foh":
+        x = dt / tau
         b1 = x * _foh_psi(x)
         u_next = jnp.concatenate([u[1:], u[-1:]])  # the last update is never output
         return lag_scan(a, one_minus_a - b1, b1, c, u, u_next)
