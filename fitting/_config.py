@@ -41,6 +41,7 @@ from ._kinds import (
     registered_kinds,
 )
 from ._model_kinds import ACTUATOR, ModelKind, get_model_kind, model_kinds
+from ._predict import predict
 
 TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "observer", "model", "data", "fit")
 MODEL_TABLES = ("observer", "model")  # the tables naming a whole-model kind (none: `pj.Actuator`)
@@ -440,19 +441,13 @@ def _getter(path: list[str]):
 # ------------------------------------------------------------------------------------------------ initial values
 
 
-@eqx.filter_jit
-def displacement_of(model, v, dt):
-    """An actuator's displacement, compiled once per model structure and record length (not once per call)."""
-    return model.simulate(v, dt).displacement
-
-
 def _start_error(model, dataset) -> float:
     """Sum over experiments of the squared displacement error of an actuator, relative to the displacement range."""
     total = 0.0
     for e in dataset:
         if e.has("displacement"):
             y = np.asarray(e["displacement"])
-            err = np.asarray(displacement_of(model, jnp.asarray(e.v_in), jnp.asarray(e.dt))) - y
+            err = predict(model, e, check_finite=False)["displacement"] - y
             total += float(np.sum((err / max(float(np.ptp(y)), np.finfo(float).tiny)) ** 2))
     return total if np.isfinite(total) else np.inf
 

@@ -144,8 +144,7 @@ def parse_state(raw: Mapping, source: str) -> dict:
 
 
 class _WithState(ModelKind):
-    """A model with an output `offset` and a hysteresis `prehistory` (`[state]`), both fields of the model; the kind
-    defines `displacement(model, experiment)`, the model's displacement for one experiment (for their starts)."""
+    """A model with an output `offset` and a hysteresis `prehistory` (`[state]`), both fields of the model."""
 
     offset_default: ClassVar[bool] = True
 
@@ -163,6 +162,13 @@ class _WithState(ModelKind):
 
     def missing(self, config):
         return ["[state] prehistory"] if self.prehistory(config) is True else []
+
+    def displacement(self, model, experiment) -> np.ndarray:
+        """The model's displacement for one experiment, from rest (`fitting.predict`; not finite where the model
+        fails there)."""
+        from ._predict import predict
+
+        return predict(model, experiment, check_finite=False)["displacement"]
 
     def state_free(self, config) -> tuple[str, ...]:
         return (("offset",) if self.offset(config) is not False else ()) + (
@@ -257,11 +263,6 @@ class ActuatorModel(_WithState):
     def default_free(self, config):
         return (("capacitance", "coupling") if config.charge is not None else ()) + self.state_free(config)
 
-    def displacement(self, model, experiment):
-        from ._config import displacement_of
-
-        return np.asarray(displacement_of(model, jnp.asarray(experiment.v_in), jnp.asarray(experiment.dt)))
-
     def fit_free(self, config, free, targets):
         if targets is not None and not {"charge", "current"} & set(targets):
             # the displacement does not depend on them
@@ -324,11 +325,6 @@ class _Observer(ModelKind):
         from ._predict import observer_predictor
 
         return observer_predictor(force="force" in self.estimates)
-
-    def displacement(self, model, experiment):
-        """The estimated displacement for one experiment."""
-        return np.asarray(_observer_displacement(model, jnp.asarray(experiment.v_in),
-                                                 jnp.asarray(experiment["v_out"]), jnp.asarray(experiment.dt)))
 
 
 _OBSERVER_REQUIRED = (
@@ -404,11 +400,6 @@ class CurrentIntegrationObserver(_WithState, _Observer):
         return ("force_sensitivity", "displacement_coefficient", "stiffness") + (
             ("capacitance_p",) if config.hysteresis_kind.empty else ()) + self.state_free(config)
 
-
-
-@eqx.filter_jit
-def _observer_displacement(model, v, v_out, dt):
-    return model(v, v_out, dt).displacement
 
 
 register_model_kind(CurrentIntegrationObserver())
