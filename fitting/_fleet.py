@@ -9,8 +9,8 @@ others go on. The steps are dispatched from Python, `steps_per_call` at a time b
 progress is reported and Ctrl-C keeps the last accepted parameters.
 
 The model's runtime checks must be `piezojax`'s value checks (`check_value`, which a fleet traces as per-actuator NaN
-refusals). Other runtime errors — `eqx.error_if` written directly, diffrax's failure check in the ODE models
-(`BoucWenOscillator`, `ElectromechanicalActuator`) — raise for the whole fleet.
+refusals; `simulate_ode`'s failed integration, in the `BoucWenOscillator`, refuses the same way). An `eqx.error_if`
+written directly in a user's model raises for the whole fleet.
 
 Differences from `fitting.solve` (one problem, stepped from Python): every iteration linearises at the trial point,
 accepted or not (under `vmap` both branches of a choice run anyway; a rejected trial of one actuator costs what an

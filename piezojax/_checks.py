@@ -76,7 +76,14 @@ def refusals_as_nan() -> Iterator[None]:
         yield
 
 
-def _nan_where(bad, x):
+def refusing_as_nan() -> bool:
+    """Whether value checks are being traced as NaN refusals (inside `refusals_as_nan`): a block whose own failure
+    test is not a `check_value` (diffrax's, say) reads it to fail as NaN instead of raising."""
+    return _REFUSAL.get() == "nan"
+
+
+def nan_where(bad, x):
+    """`x` with every floating leaf NaN where `bad` (broadcast), the others unchanged: a NaN refusal."""
     return jtu.tree_map(lambda a: jnp.where(bad, jnp.nan, a) if eqx.is_inexact_array(a) else a, x)
 
 
@@ -108,7 +115,7 @@ def check_value(x: _X, ok: Callable[[_X], ArrayLike] | ArrayLike, message: str |
 
     def attach(good):
         if _REFUSAL.get() == "nan":
-            return _nan_where(~jnp.all(jnp.asarray(good)), x)
+            return nan_where(~jnp.all(jnp.asarray(good)), x)
         if messages is None:
             return eqx.error_if(x, ~jnp.all(good), message)
         good = jnp.asarray(good)

@@ -1,5 +1,6 @@
 """The shared diffrax path (`simulate_ode`) on a linear system against the exact matrix-exponential solution."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -135,3 +136,23 @@ def test_bad_input():
         pj.simulate_ode(f, jnp.zeros(()), jnp.ones(10), 0.1, substeps=0)
     with pytest.raises(Exception, match="`u` contains NaN"):
         pj.simulate_ode(f, jnp.zeros(()), jnp.array([1.0, jnp.nan]), 0.1)
+
+
+def test_a_failed_integration_raises_or_refuses_as_nan_per_member():
+    # y' = a y^2 from y(0) = 1 blows up at t = 1/a: with a = 2 inside the record of 1 s the adaptive steps shrink
+    # until the step budget is spent (diffrax fails); with a = 0.5 the solution is 1 / (1 - a t)
+    from piezojax._checks import refusals_as_nan
+
+    f = lambda t, y, u, a: a * y**2  # noqa: E731
+    dt, n = 0.1, 11
+
+    def run(a):
+        return pj.simulate_ode(f, jnp.ones(()), jnp.zeros(n), dt, a, hold="zoh", rtol=1e-8)
+
+    with pytest.raises(eqx.EquinoxRuntimeError):
+        jax.block_until_ready(eqx.filter_jit(run)(jnp.asarray(2.0)))
+    with refusals_as_nan():
+        ys = jax.jit(jax.vmap(run))(jnp.array([0.5, 2.0]))  # traced in the refusal mode: each member alone
+    t = np.arange(n) * dt
+    np.testing.assert_allclose(np.asarray(ys[0]), 1 / (1 - 0.5 * t), rtol=1e-6)
+    assert np.all(np.isnan(np.asarray(ys[1])))

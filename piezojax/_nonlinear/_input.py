@@ -16,7 +16,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from .._checks import PiezojaxValueError, as_float_array, check_finite, check_step, check_value
+from .._checks import (
+    PiezojaxValueError,
+    as_float_array,
+    check_finite,
+    check_step,
+    check_value,
+    nan_where,
+    refusing_as_nan,
+)
 from .._dtypes import common_float_dtype
 
 HOLDS = ("zoh", "linear", "periodic")
@@ -176,9 +184,10 @@ def simulate_ode(
 
     The samples `u` are held with `hold` (see `SampledInput`). Default integration: `diffrax.Tsit5` with a
     constant step `dt / substeps` on a grid aligned with the sample times (`diffrax.StepTo`), so that no step
-    straddles a jump (`"zoh"`) or a kink (`"linear"`) of the held input. With `rtol` given, a `diffrax.PIDController(rtol, atol)` chooses the steps instead (scale the
-    states to O(1) first: its error norm is absolute + relative on the raw states). The adjoint is
-    `diffrax.ForwardMode`, so `jax.jacfwd` (and `jax.jvp`) work; reverse mode (`jax.grad`) is not supported.
+    straddles a jump (`"zoh"`) or a kink (`"linear"`) of the held input. With `rtol` given, a
+    `diffrax.PIDController(rtol, atol)` chooses the steps instead (scale the states to O(1) first: its error norm is
+    absolute + relative on the raw states). The adjoint is `diffrax.ForwardMode`, so `jax.jacfwd` (and `jax.jvp`)
+    work; reverse mode (`jax.grad`) is not supported.
 
     **Arguments:**
 
@@ -195,7 +204,10 @@ def simulate_ode(
     - `upsample`: knots per sample of the periodic interpolant (default `max(substeps, 8)`).
     - `solver`: a diffrax solver (default `diffrax.Tsit5()`).
 
-    **Returns:** the states at `k dt`, `k = 0 .. num_samples - 1`, stacked along a new leading axis.
+    **Returns:** the states at `k dt`, `k = 0 .. num_samples - 1`, stacked along a new leading axis. A failed
+    integration (the adaptive mode's step budget spent, e.g. on a solution that blows up) raises an
+    `eqx.EquinoxRuntimeError`; traced inside `piezojax`'s NaN-refusal mode (as `fitting` traces its residuals) it
+    returns NaN states instead, for that member of a `vmap` batch alone.
 
     ```python
     f = lambda t, y, u, a: -y + u
@@ -260,5 +272,10 @@ def simulate_ode(
         stepsize_controller=controller,
         adjoint=diffrax.ForwardMode(),
         max_steps=max_steps,
+        # a failed integration (e.g. `max_steps` reached) raises, or under `refusals_as_nan` makes the states NaN
+        # (per member of a `vmap` batch, as the value checks do)
+        throw=not refusing_as_nan(),
     )
+    if refusing_as_nan():
+        return nan_where(sol.result != diffrax.RESULTS.successful, sol.ys)
     return sol.ys
