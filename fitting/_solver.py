@@ -541,8 +541,10 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     Besides the solver's own test (`terminate`), a start ends: converged when its accepted steps no longer lower the
     cost (mean relative decrease over the last `window` below the solver's `ftol`: parameters drifting along a flat
     valley); `stalled` after `max_rejections` consecutive rejected trials; `max_steps_reached`; `interrupted` on
-    Ctrl-C (the last accepted point is kept). A trial point at which the model raises a runtime check
-    (`eqx.error_if`) is a failed trial of that start only: the others take their step as usual.
+    Ctrl-C (the last accepted point is kept). A trial point the model refuses is a failed trial of that start only:
+    the others take their step as usual. `piezojax`'s own checks are traced as NaN refusals (a non-finite trial);
+    an `eqx.error_if` in a user's model raises for the whole batch, so it is caught and the starts' trials are run
+    one by one to find the refused ones.
     """
     n_starts = u0.shape[0]
     ftol = float(solver.ftol)

@@ -140,6 +140,16 @@ def check_value(x: _X, ok: Callable[[_X], ArrayLike] | ArrayLike, message: str |
     return x
 
 
+def check_component(x, cls: type | tuple[type, ...], name: str, called: str):
+    """`x` if it is an instance of `cls` (a type or a tuple of types) or `None`, else a `PiezojaxValueError` naming
+    the argument `name`, the types it may have and how the component calls it (`called`, e.g. "creep(v, dt)"): a
+    component field's interface, checked where the component is built."""
+    if x is not None and not isinstance(x, cls):
+        kinds = " or ".join(f"pj.{c.__name__}" for c in (cls if isinstance(cls, tuple) else (cls,)))
+        raise PiezojaxValueError(f"`{name}` must be a {kinds} (called as {called}) or None, got {type(x).__name__}")
+    return x
+
+
 def check_same_shape(a: Array, name_a: str, b: Array, name_b: str) -> None:
     """Raise one `PiezojaxValueError` naming both when two parameter arrays that go together (a play's weight and
     threshold, a lag's stiffness and time constant) differ in shape — also for leaves replaced after construction

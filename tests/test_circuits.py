@@ -190,6 +190,16 @@ def test_jit_and_vmap(tia):
         (lambda: pj.ChargeIntegratorCircuit(1e-7, 1e-9, 1e10, np.nan, 1e-6), "bias_current"),
         (lambda: pj.SmartStackCircuit(1e-12, 0.0, 1, 1, 1, 1, 1), "amplifier_capacitance"),
         (lambda: pj.SmartStackCircuit(1e-12, 1e-10, 1, 1, 1, -1, 1), "c_e"),
+        # a component of the wrong kind is refused where the circuit is built (a function is not a pj.AbstractCreep,
+        # a creep law is not a hysteresis operator), naming the argument and the types it may have
+        (lambda: pj.TransimpedanceCircuit(1e6, 4e-9, creep=lambda v, dt: v),
+         r"`creep` must be a pj.AbstractCreep or pj.AbstractLinearSystem .*got function"),
+        (lambda: pj.ChargeIntegratorCircuit(1e-7, 1e-9, 1e10, 0.0, 1e-6, hysteresis=pj.KelvinVoigtCreep([1e9], [1.0])),
+         r"`hysteresis` must be a pj.AbstractHysteresis .*got KelvinVoigtCreep"),
+        (lambda: pj.ForceDisplacementObserver(1e-7, 1e-9, 1e10, 0.0, 1e-6, -4e-3, 150.0, creep=np.ones(3)),
+         r"`creep` must be .*got ndarray"),
+        (lambda: pj.SmartStackCircuit(1e-12, 1e-10, 1, 1, 1, 1, 1, actuator=pj.TransferFunction([1.0], [1.0, 1.0])),
+         r"`actuator` must be a pj.AbstractHysteresis .*got TransferFunction"),
     ],
 )
 def test_bad_parameters(make, name):

@@ -67,11 +67,12 @@ ALLOWED = {
     "piezojax._creep": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._creep",
                         "piezojax._linear", "piezojax._hysteresis.play", "piezojax._config", "piezojax._scans"},
     "piezojax._circuits": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._circuits",
-                           "piezojax._linear"},
+                           "piezojax._linear", "piezojax._hysteresis.base", "piezojax._creep.base"},
     "piezojax._control": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._control",
                           "piezojax._parametrisation"},
     "piezojax._observers": {"piezojax._checks", "piezojax._custom_types", "piezojax._dtypes", "piezojax._observers",
-                            "piezojax._circuits", "piezojax._linear"},
+                            "piezojax._circuits", "piezojax._linear", "piezojax._hysteresis.base",
+                            "piezojax._creep.base"},
 }
 
 

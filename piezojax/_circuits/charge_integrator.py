@@ -1,9 +1,12 @@
 """Paper 001 (Ivan et al. 2009): the piezo charge read by an integrator with a reference capacitor."""
 
-import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
+from .._checks import check_component
+from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
+from .._hysteresis.base import AbstractHysteresis
+from .._linear.base import AbstractLinearSystem
 from .base import (
     AbstractCircuit,
     check_positive_param,
@@ -42,9 +45,10 @@ class ChargeIntegratorCircuit(AbstractCircuit):
     - `bias_current`: $i_{bias}$ [A] (constant; default 0).
     - `force_sensitivity`: $\beta > 0$ [C/N] (1.03 nC/mN in the paper).
     - `capacitance_p`: $C_P \ge 0$ [F] (1.74 nF in the paper), used when `hysteresis` is `None`.
-    - `hysteresis`: the charge–voltage operator $\mathcal{H}$ [C] (any module mapping a signal to a signal, e.g.
-      `pj.PrandtlIshlinskii` with weights in F), or `None`.
-    - `creep`: $\mathcal{F}_C$ [C/V], called as `creep(v_in, dt)` (e.g. a `pj.TransferFunction`), or `None`.
+    - `hysteresis`: the charge–voltage operator $\mathcal{H}$ [C] (a `pj.AbstractHysteresis`, called as `op(v_in)`,
+      e.g. `pj.PrandtlIshlinskii` with weights in F), or `None`.
+    - `creep`: $\mathcal{F}_C$ [C/V], a `pj.AbstractCreep` or `pj.AbstractLinearSystem` called as `creep(v_in, dt)`
+      (e.g. a `pj.TransferFunction`), or `None`.
 
     ```python
     circuit = pj.ChargeIntegratorCircuit(100e-9, 1.74e-9, 1e12, 0.0, 1.03e-6, capacitance_p=1.74e-9)
@@ -58,8 +62,8 @@ class ChargeIntegratorCircuit(AbstractCircuit):
     bias_current: Float[Array, ""]
     force_sensitivity: Float[Array, ""]
     capacitance_p: Float[Array, ""]
-    hysteresis: eqx.Module | None
-    creep: eqx.Module | None
+    hysteresis: AbstractHysteresis | None
+    creep: AbstractCreep | AbstractLinearSystem | None
 
     def __init__(
         self,
@@ -69,8 +73,8 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         bias_current: ArrayLike,
         force_sensitivity: ArrayLike,
         capacitance_p: ArrayLike = 0.0,
-        hysteresis: eqx.Module | None = None,
-        creep: eqx.Module | None = None,
+        hysteresis: AbstractHysteresis | None = None,
+        creep: AbstractCreep | AbstractLinearSystem | None = None,
     ):
         self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance")
         self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance")
@@ -78,8 +82,8 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         self.bias_current = check_scalar_param(bias_current, "bias_current")
         self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity")
         self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True)
-        self.hysteresis = hysteresis
-        self.creep = creep
+        self.hysteresis = check_component(hysteresis, AbstractHysteresis, "hysteresis", "op(v)")
+        self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")
 
     def check(self) -> "ChargeIntegratorCircuit":
         names = ("integrator_capacitance", "reference_capacitance", "leakage_resistance", "force_sensitivity",

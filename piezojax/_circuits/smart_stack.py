@@ -1,11 +1,11 @@
 """Paper 002 (Chen & Li 2014): a preloaded piezo stack with a sensor layer read by a charge amplifier."""
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError
+from .._checks import PiezojaxValueError, check_component
 from .._custom_types import Signal, SignalLike
+from .._hysteresis.base import AbstractHysteresis
 from .._linear.transfer_function import TransferFunction
 from .base import (
     AbstractCircuit,
@@ -41,7 +41,7 @@ class SmartStackCircuit(AbstractCircuit):
     - `d33` [C/N] > 0; `amplifier_capacitance` $C$ [F] > 0 (104 pF in the paper).
     - `k_p`, `k_s`, `k_e` [N/m] > 0: preload spring, stack and stage stiffness; `m_e` [kg] > 0, `c_e` [N s/m] ≥ 0.
     - `crosstalk`: $p_c$ [V/V], the sensor voltage per actuator volt (negative in the paper), default 0.
-    - `actuator`: a module mapping the drive $V_a$ to $x_a$ [m] (e.g. a `pj.PrandtlIshlinskii` in m/V), or `None`
+    - `actuator`: a `pj.AbstractHysteresis` mapping the drive $V_a$ to $x_a$ [m] (e.g. a `pj.PrandtlIshlinskii` in m/V), or `None`
       (then pass `x_a` to `__call__`).
 
     ```python
@@ -58,7 +58,7 @@ class SmartStackCircuit(AbstractCircuit):
     c_e: Float[Array, ""]
     k_e: Float[Array, ""]
     crosstalk: Float[Array, ""]
-    actuator: eqx.Module | None
+    actuator: AbstractHysteresis | None
 
     def __init__(
         self,
@@ -70,7 +70,7 @@ class SmartStackCircuit(AbstractCircuit):
         c_e: ArrayLike,
         k_e: ArrayLike,
         crosstalk: ArrayLike = 0.0,
-        actuator: eqx.Module | None = None,
+        actuator: AbstractHysteresis | None = None,
     ):
         self.d33 = check_positive_param(d33, "d33")
         self.amplifier_capacitance = check_positive_param(amplifier_capacitance, "amplifier_capacitance")
@@ -80,7 +80,7 @@ class SmartStackCircuit(AbstractCircuit):
         self.c_e = check_positive_param(c_e, "c_e", allow_zero=True)
         self.k_e = check_positive_param(k_e, "k_e")
         self.crosstalk = check_scalar_param(crosstalk, "crosstalk")
-        self.actuator = actuator
+        self.actuator = check_component(actuator, AbstractHysteresis, "actuator", "op(v_a)")
 
     def check(self) -> "SmartStackCircuit":
         names = ("d33", "amplifier_capacitance", "k_p", "k_s", "m_e", "c_e", "k_e")

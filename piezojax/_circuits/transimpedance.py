@@ -1,10 +1,11 @@
 """Paper 000 (Bafumba Liseli et al. 2018): the piezo current read by a transimpedance amplifier."""
 
-import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError
+from .._checks import PiezojaxValueError, check_component
+from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
+from .._linear.base import AbstractLinearSystem
 from .base import (
     AbstractCircuit,
     check_positive_param,
@@ -39,7 +40,8 @@ class TransimpedanceCircuit(AbstractCircuit):
     - `gamma`: $\gamma \ge 0$, capacitance drop under deformation [F] (0.66 nF in the paper).
     - `bias_current`: $I_{bias}$ [A], default 0.
     - `creep`: the deformation-charge creep $\mathcal{C}$ (e.g. `pj.KelvinVoigtCreep(..., k0=None)` or a
-      `pj.TransferFunction` with zero high-frequency gain; called as `creep(v_in, dt)`), or `None` for none.
+      `pj.TransferFunction` with zero high-frequency gain: a `pj.AbstractCreep` or `pj.AbstractLinearSystem`, called as
+      `creep(v_in, dt)`), or `None` for none.
 
     ```python
     circuit = pj.TransimpedanceCircuit(1e6, 4.2e-9, 0.66e-9,
@@ -53,7 +55,7 @@ class TransimpedanceCircuit(AbstractCircuit):
     capacitance: Float[Array, ""]
     gamma: Float[Array, ""]
     bias_current: Float[Array, ""]
-    creep: eqx.Module | None
+    creep: AbstractCreep | AbstractLinearSystem | None
 
     def __init__(
         self,
@@ -61,13 +63,13 @@ class TransimpedanceCircuit(AbstractCircuit):
         capacitance: ArrayLike,
         gamma: ArrayLike = 0.0,
         bias_current: ArrayLike = 0.0,
-        creep: eqx.Module | None = None,
+        creep: AbstractCreep | AbstractLinearSystem | None = None,
     ):
         self.feedback_resistance = check_positive_param(feedback_resistance, "feedback_resistance")
         self.capacitance = check_positive_param(capacitance, "capacitance")
         self.gamma = check_positive_param(gamma, "gamma", allow_zero=True)
         self.bias_current = check_scalar_param(bias_current, "bias_current")
-        self.creep = creep
+        self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")
 
     def check(self) -> "TransimpedanceCircuit":
         m = error_if_not_positive(self, ("feedback_resistance", "capacitance", "gamma"), allow_zero=("gamma",))

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_value
+from .._checks import PiezojaxValueError, check_component, check_value
 from .._circuits.base import (
     check_positive_param,
     check_scalar_param,
@@ -15,7 +15,10 @@ from .._circuits.base import (
     prepare,
     running_integral,
 )
+from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
+from .._hysteresis.base import AbstractHysteresis
+from .._linear.base import AbstractLinearSystem
 from .._linear.butterworth import butterworth_zoh
 from .base import AbstractObserver, Estimate
 
@@ -48,8 +51,9 @@ class ForceDisplacementObserver(AbstractObserver):
     - `force_sensitivity` $\beta$ [C/N] > 0; `displacement_coefficient` $\alpha$ [C/m] (≠ 0, signed);
       `stiffness` $k_Z$ [N/m] > 0.
     - `capacitance_p` [F]: the linear $C_P$ used when `hysteresis` is `None` (then eq. 4 reduces to eq. 3).
-    - `hysteresis`: $\mathcal{F}_H$ (a module mapping a signal to a signal, in C), or `None`.
-    - `creep`: $\mathcal{F}_C$ (called as `creep(v_in, dt)`), or `None`.
+    - `hysteresis`: $\mathcal{F}_H$ (a `pj.AbstractHysteresis` in C, called as `op(v_in)`), or `None`.
+    - `creep`: $\mathcal{F}_C$ (a `pj.AbstractCreep` or `pj.AbstractLinearSystem`, called as `creep(v_in, dt)`), or
+      `None`.
     - `filter_cutoff`: Butterworth cutoff [Hz], or `None`.
     - `offset` [m]: added to the displacement estimate (the zero of the displacement sensor it is compared with).
     - `prehistory` $u_p$ [V], or `None`: the remanent state of $\mathcal{F}_H$ from the actuator's last use, as an
@@ -74,8 +78,8 @@ class ForceDisplacementObserver(AbstractObserver):
     displacement_coefficient: Float[Array, ""]
     stiffness: Float[Array, ""]
     capacitance_p: Float[Array, ""]
-    hysteresis: eqx.Module | None
-    creep: eqx.Module | None
+    hysteresis: AbstractHysteresis | None
+    creep: AbstractCreep | AbstractLinearSystem | None
     filter_cutoff: Float[Array, ""] | None
     offset: Float[Array, ""]
     prehistory: Float[Array, ""] | None
@@ -90,8 +94,8 @@ class ForceDisplacementObserver(AbstractObserver):
         displacement_coefficient: ArrayLike,
         stiffness: ArrayLike,
         capacitance_p: ArrayLike = 0.0,
-        hysteresis: eqx.Module | None = None,
-        creep: eqx.Module | None = None,
+        hysteresis: AbstractHysteresis | None = None,
+        creep: AbstractCreep | AbstractLinearSystem | None = None,
         filter_cutoff: ArrayLike | None = None,
         *,
         offset: ArrayLike = 0.0,
@@ -107,8 +111,8 @@ class ForceDisplacementObserver(AbstractObserver):
         )
         self.stiffness = check_positive_param(stiffness, "stiffness")
         self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True)
-        self.hysteresis = hysteresis
-        self.creep = creep
+        self.hysteresis = check_component(hysteresis, AbstractHysteresis, "hysteresis", "op(v)")
+        self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")
         self.filter_cutoff = None if filter_cutoff is None else check_positive_param(filter_cutoff, "filter_cutoff")
         self.offset = check_scalar_param(offset, "offset")
         if prehistory is not None and hysteresis is None:
