@@ -456,7 +456,7 @@ class _OffsetPI(eqx.Module):
     offset: jax.Array
 
 
-class _Linear(eqx.Module):
+class _Linear(pj.AbstractCell):
     """The static inverse y / g of a linear fit (a cell), for the uncompensated reference."""
 
     gain: jax.Array

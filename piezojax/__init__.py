@@ -50,6 +50,7 @@ from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
 from ._creep.lag import LagCreep as LagCreep
 from ._creep.linear import LinearCreep as LinearCreep
 from ._creep.logarithmic import LogarithmicCreep as LogarithmicCreep
+from ._custom_types import AbstractCell as AbstractCell
 from ._hysteresis.base import (
     AbstractHysteresis as AbstractHysteresis,
     AbstractHysteresisCell as AbstractHysteresisCell,
@@ -87,8 +88,10 @@ from ._nonlinear._input import (
     simulate_ode as simulate_ode,
 )
 from ._nonlinear.bouc_wen_oscillator import BoucWenOscillator as BoucWenOscillator
-from ._nonlinear.electromechanical import ElectromechanicalActuator as ElectromechanicalActuator
-from ._nonlinear.electromechanical import ElectromechanicalInverse as ElectromechanicalInverse
+from ._nonlinear.electromechanical import (
+    ElectromechanicalActuator as ElectromechanicalActuator,
+    ElectromechanicalInverse as ElectromechanicalInverse,
+)
 from ._observers.base import (
     AbstractObserver as AbstractObserver,
     Estimate as Estimate,

@@ -239,8 +239,36 @@ def test_control_bad_input():
         pj.AdaptiveInverseController(jax.random.key(0), hidden=3, momentum=1.0)
     with pytest.raises(pj.PiezojaxValueError, match="input_lags"):
         pj.NarxNetwork(jax.random.key(0), hidden=3, output_lags=1, input_lags=0)
-    with pytest.raises(pj.PiezojaxValueError, match="inverse"):
+    with pytest.raises(pj.PiezojaxValueError, match="`inverse` must be a pj.AbstractCell"):
         pj.InverseFeedforward(lambda y: y)
+
+    class DuckCell(eqx.Module):  # init/step without declaring the interface: refused, naming it
+        def init(self):
+            return ()
+
+        def step(self, state, x):
+            return state, x
+
+    with pytest.raises(pj.PiezojaxValueError, match="`observer` must be a pj.AbstractCell .*got DuckCell"):
+        pj.closed_loop(pj.PID(1.0, dt=0.01), _plant(), np.ones(3), observer=DuckCell())
+
+    class Gain(pj.AbstractCell):  # a cell of one's own: the feedback doubled, the inverse halving
+        g: float
+
+        def init(self):
+            return ()
+
+        def step(self, state, x):
+            return state, self.g * (x["displacement"] if isinstance(x, dict) else x)
+
+    pid, ref = pj.PID(1.0, ki=5.0, dt=0.01), np.ones(10)
+    same = pj.closed_loop(pid, _plant(), ref, observer=Gain(1.0))
+    np.testing.assert_array_equal(np.asarray(same.control), np.asarray(pj.closed_loop(pid, _plant(), ref).control))
+    doubled = pj.closed_loop(pid, _plant(), ref, observer=Gain(2.0))
+    np.testing.assert_allclose(doubled.feedback, 2 * np.asarray(doubled.channels["displacement"]), rtol=1e-12)
+    assert np.ptp(np.asarray(doubled.feedback)) > 0
+    ff = pj.InverseFeedforward(Gain(0.5), offset=1.0)
+    np.testing.assert_allclose(np.asarray(ff(jnp.array([2.0, 4.0]), jnp.zeros(2))), [2.0, 3.0], rtol=1e-12)
 
 
 def test_adaptive_offline_start_fits_the_inverse_the_preview_aims_at():

@@ -1,10 +1,10 @@
 """Feedforward from a model's inverse, and feedforward plus feedback."""
 
-import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from .._checks import PiezojaxValueError, as_parameter_array
+from .._custom_types import AbstractCell
 from .base import AbstractController
 
 
@@ -13,7 +13,7 @@ class InverseFeedforward(AbstractController):
 
     **Arguments:**
 
-    - `inverse`: a cell with `init()` and `step(state, y) -> (state, v)` mapping a desired output to the input that
+    - `inverse`: a `pj.AbstractCell` whose `step(state, y) -> (state, v)` maps a desired output to the input that
       produces it, e.g. `pi.inverse()` of a fitted `pj.PrandtlIshlinskii` $H$ (its inverse is exact and
       rate-independent), or any operator that maps displacement to voltage.
     - `offset`: $u_0$, added to the inverse's output (e.g. a bias voltage the model was fitted around).
@@ -25,17 +25,16 @@ class InverseFeedforward(AbstractController):
     ```
     """
 
-    inverse: eqx.Module
+    inverse: AbstractCell
     offset: Float[Array, ""]
     reference_offset: Float[Array, ""]
     reference_scale: Float[Array, ""]
 
-    def __init__(self, inverse: eqx.Module, *, offset: ArrayLike = 0.0, reference_offset: ArrayLike = 0.0,
+    def __init__(self, inverse: AbstractCell, *, offset: ArrayLike = 0.0, reference_offset: ArrayLike = 0.0,
                  reference_scale: ArrayLike = 1.0):
-        if not (callable(getattr(inverse, "init", None)) and callable(getattr(inverse, "step", None))):
-            raise PiezojaxValueError(
-                f"`inverse` must be a cell with init() and step(state, y), got {type(inverse).__name__}"
-            )
+        if not isinstance(inverse, AbstractCell):
+            raise PiezojaxValueError(f"`inverse` must be a pj.AbstractCell (init() and step(state, y)), got "
+                                     f"{type(inverse).__name__}")
         self.inverse = inverse
         self.offset = as_parameter_array(offset, "offset")
         self.reference_offset = as_parameter_array(reference_offset, "reference_offset")

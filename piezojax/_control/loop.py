@@ -1,7 +1,6 @@
 """The closed loop plant → observer → controller as one `lax.scan`."""
 
 from collections.abc import Callable
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -9,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from .._checks import PiezojaxValueError, check_signal
-from .._custom_types import SignalLike
+from .._custom_types import AbstractCell, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 from .base import AbstractController, AbstractPlant, as_time_major
 
@@ -34,7 +33,7 @@ def closed_loop(
     plant: AbstractPlant,
     reference: SignalLike,
     *,
-    observer: Any = None,
+    observer: AbstractCell | None = None,
     feedback: str = "displacement",
     noise: PyTree[ArrayLike] | None = None,
     preview: int = 0,
@@ -53,7 +52,7 @@ def closed_loop(
     - `controller`: an `AbstractController`.
     - `plant`: an `AbstractPlant`.
     - `reference`: $r_k$, shape `(time,)`.
-    - `observer`: a cell with `init()` and `step(state, channels) -> (state, estimate)` that turns the plant's
+    - `observer`: a `pj.AbstractCell` whose `step(state, channels) -> (state, estimate)` turns the plant's
       channels into the feedback (e.g. `pj.SensorLayerObserver`: displacement from the sensor voltage); `None`:
       the feedback is the channel named `feedback`.
     - `feedback`: the channel fed back when `observer` is None (default `"displacement"`).
@@ -78,11 +77,9 @@ def closed_loop(
         raise PiezojaxValueError(f"`controller` must be a pj.AbstractController, got {type(controller).__name__}")
     if not isinstance(plant, AbstractPlant):
         raise PiezojaxValueError(f"`plant` must be a pj.AbstractPlant, got {type(plant).__name__}")
-    is_cell = callable(getattr(observer, "init", None)) and callable(getattr(observer, "step", None))
-    if observer is not None and not is_cell:
-        raise PiezojaxValueError(
-            f"`observer` must be a cell with init() and step(state, channels), got {type(observer).__name__}"
-        )
+    if observer is not None and not isinstance(observer, AbstractCell):
+        raise PiezojaxValueError(f"`observer` must be a pj.AbstractCell (init() and step(state, channels)) or None, "
+                                 f"got {type(observer).__name__}")
     if not isinstance(preview, int) or isinstance(preview, bool) or preview < 0:
         raise PiezojaxValueError(f"`preview` must be an int >= 0, got {preview!r}")
     dtype = module_float_dtype((controller, plant, observer), reference)

@@ -9,11 +9,11 @@ import jax.tree_util as jtu
 from jaxtyping import Array, PyTree
 
 from .._checks import check_signal
-from .._custom_types import ScalarLike, Signal, SignalLike
+from .._custom_types import AbstractCell, ScalarLike, Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 
 
-class AbstractHysteresis(eqx.Module):
+class AbstractHysteresis(AbstractCell):
     r"""A rate-independent hysteresis operator $y = \mathcal{H}[v]$, written as a cell.
 
     A concrete operator defines `init()` (the relaxed / demagnetised state, input at 0) and

@@ -14,11 +14,11 @@ from .._circuits.base import (
     error_if_not_positive,
     prepare,
 )
-from .._custom_types import SignalLike
+from .._custom_types import AbstractCell, SignalLike
 from .base import AbstractObserver, Estimate
 
 
-class SensorLayerObserver(AbstractObserver):
+class SensorLayerObserver(AbstractObserver, AbstractCell):
     r"""Displacement (eq. 8–9) and force (eq. 1) of a smart piezo stack from its sensor voltage (paper 002).
 
     Quasi-static (below the stage zero $\omega_z$, eq. 5) inversion of eq. (8),
