@@ -304,3 +304,14 @@ def test_quant_bench_bad_input():
         pj.QuantBench(stiffness=(1e6, 2e6))
     with pytest.raises(pj.PiezojaxValueError, match="`mass` must be >= 0"):
         pj.QuantBench().with_load(1e6, -0.1)
+    # traced numbers get the same checks at run time (they were skipped before), and a good traced bench runs
+    v = jnp.linspace(0.0, 100.0, 8)
+    strain = eqx.filter_jit(lambda k, m: pj.QuantBench(stiffness=k).with_load(1e6, m).truth(v)["strain"])
+    assert np.all(np.isfinite(np.asarray(strain(jnp.asarray(4.1e6), jnp.asarray(0.1)))))
+    with pytest.raises(Exception, match="`stiffness` must be > 0"):
+        jax.block_until_ready(strain(jnp.asarray(-4.1e6), jnp.asarray(0.1)))
+    with pytest.raises(Exception, match="`mass` must be >= 0"):
+        jax.block_until_ready(strain(jnp.asarray(4.1e6), jnp.asarray(-0.1)))
+    with pytest.raises(Exception, match="`participations` must sum to 1"):
+        jax.block_until_ready(eqx.filter_jit(lambda p: pj.QuantBench(participations=p).truth(v)["x"])(
+            jnp.array([0.9, 0.06])))

@@ -4,10 +4,9 @@ gauge and a charge amplifier (the thesis' characterisation set-up, Ch. 4)."""
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
-from .._checks import PiezojaxValueError, concrete_or_none
+from .._checks import PiezojaxValueError, check_value
 from .._creep.lags import lag_sum
 from .._hysteresis.preisach import Preisach
 from .._linear.state_space import StateSpace
@@ -38,26 +37,29 @@ _NONNEGATIVE = ("creep_fraction", "dampings", "load_stiffness", "load_mass", "lo
 _MODES = ("frequencies", "dampings", "participations")
 
 
-def _check_fields(bench: "QuantBench", names: dict[str, str] | None = None) -> None:
-    """Concrete checks of the bench's numbers (skipped for traced values): scalars where one is expected, signs,
-    and participations summing to 1; `PiezojaxValueError` naming the argument (`names` maps fields to the names
-    the caller used)."""
+def _checked_fields(bench: "QuantBench", fields: tuple[str, ...], names: dict[str, str] | None = None) -> tuple:
+    """The bench's numbers `fields` with their value checks (`check_value`: a `PiezojaxValueError` naming the
+    argument for concrete values, a runtime check when traced): scalars where one is expected (a shape, checked
+    now), signs, and participations summing to 1. `names` maps fields to the names the caller used."""
     names = names or {}
-    for field in _POSITIVE + _NONNEGATIVE + ("coupling", "coupling_variation"):
-        value = concrete_or_none(getattr(bench, field))
-        if value is None:
-            continue
-        name = names.get(field, field)
-        if field not in _MODES and np.ndim(value) != 0:
-            raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {np.shape(value)}")
-        if field in _POSITIVE and not np.all(value > 0):
-            raise PiezojaxValueError(f"`{name}` must be > 0, got {value}")
-        if field in _NONNEGATIVE and not np.all(value >= 0):
-            raise PiezojaxValueError(f"`{name}` must be >= 0, got {value}")
-    p = concrete_or_none(bench.participations)
-    if p is not None and abs(float(np.sum(p)) - 1) > 1e-9:
-        raise PiezojaxValueError(f"`participations` must sum to 1 (x = F/k at rest), got {np.asarray(p)} "
-                                 f"(sum {float(np.sum(p)):.6g})")
+    out = []
+    for field in fields:
+        value, name = getattr(bench, field), names.get(field, field)
+        if field not in _MODES and jnp.ndim(value) != 0:
+            raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {jnp.shape(value)}")
+        if field in _POSITIVE:
+            value = check_value(value, lambda x: x > 0, f"`{name}` must be > 0")
+        elif field in _NONNEGATIVE:
+            value = check_value(value, lambda x: x >= 0, f"`{name}` must be >= 0")
+        if field == "participations":
+            value = check_value(value, lambda p: jnp.abs(jnp.sum(p) - 1) <= 1e-9,
+                                "`participations` must sum to 1 (x = F/k at rest)")
+        out.append(value)
+    return tuple(out)
+
+
+_CHECKED = _POSITIVE + _NONNEGATIVE + ("coupling", "coupling_variation")
+_LOAD = ("load_stiffness", "load_mass", "load_damping")
 
 
 class QuantBench(AbstractBench):
@@ -169,7 +171,8 @@ class QuantBench(AbstractBench):
         self.hv_time_constant = bench_param(hv_time_constant, "hv_time_constant")
         self.feedback_capacitance = bench_param(feedback_capacitance, "feedback_capacitance")
         self.length = float(length)
-        _check_fields(self)
+        for field, value in zip(_CHECKED, _checked_fields(self, _CHECKED)):
+            setattr(self, field, value)
         self.v_in_noise, self.strain_noise, self.charge_noise = v_in_noise, strain_noise, charge_noise
         self.adc_bits, self.sample_rate = adc_bits, sample_rate
 
@@ -183,8 +186,8 @@ class QuantBench(AbstractBench):
         loaded = eqx.tree_at(lambda b: (b.load_stiffness, b.load_mass, b.load_damping), self,
                              (bench_param(stiffness, "stiffness"), bench_param(mass, "mass"),
                               bench_param(damping, "damping")))
-        _check_fields(loaded, {"load_stiffness": "stiffness", "load_mass": "mass", "load_damping": "damping"})
-        return loaded
+        names = {"load_stiffness": "stiffness", "load_mass": "mass", "load_damping": "damping"}
+        return eqx.tree_at(lambda b: tuple(getattr(b, f) for f in _LOAD), loaded, _checked_fields(loaded, _LOAD, names))
 
     def mechanics(self) -> StateSpace:
         r"""The modes with the load, from the transducer force to $x$: $M\ddot\eta + C\dot\eta + K\eta = F\mathbf 1$,
