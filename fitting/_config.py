@@ -295,7 +295,7 @@ class ModelConfig:
                               "rules instead", StartWarning, stacklevel=2)
         models = [self.model_kind.start_state(self, m, dataset) for m in models]
         if self.model_kind.cold_start and len(models) > 1:
-            models.sort(key=lambda m: _start_error(m, dataset))
+            models.sort(key=lambda m: _start_error(m, dataset, self.predictor()))
         return [self._constrain(m) for m in models]
 
     def reseeded(self, model, dataset, free, fit_args: Mapping | None = None) -> tuple[object, int] | None:
@@ -441,13 +441,14 @@ def _getter(path: list[str]):
 # ------------------------------------------------------------------------------------------------ initial values
 
 
-def _start_error(model, dataset) -> float:
-    """Sum over experiments of the squared displacement error of an actuator, relative to the displacement range."""
+def _start_error(model, dataset, predictor) -> float:
+    """Sum over experiments of the squared displacement error of an actuator (predicted by `predictor`), relative to
+    the displacement range."""
     total = 0.0
     for e in dataset:
         if e.has("displacement"):
             y = np.asarray(e["displacement"])
-            err = predict(model, e, check_finite=False)["displacement"] - y
+            err = predict(model, e, predictor=predictor, check_finite=False)["displacement"] - y
             total += float(np.sum((err / max(float(np.ptp(y)), np.finfo(float).tiny)) ** 2))
     return total if np.isfinite(total) else np.inf
 

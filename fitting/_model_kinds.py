@@ -163,12 +163,12 @@ class _WithState(ModelKind):
     def missing(self, config):
         return ["[state] prehistory"] if self.prehistory(config) is True else []
 
-    def displacement(self, model, experiment) -> np.ndarray:
-        """The model's displacement for one experiment, from rest (`fitting.predict`; not finite where the model
-        fails there)."""
+    def displacement(self, config, model, experiment) -> np.ndarray:
+        """The model's displacement for one experiment, from rest (`fitting.predict` with the kind's predictor; not
+        finite where the model fails there)."""
         from ._predict import predict
 
-        return predict(model, experiment, check_finite=False)["displacement"]
+        return predict(model, experiment, predictor=self.predictor(config), check_finite=False)["displacement"]
 
     def state_free(self, config) -> tuple[str, ...]:
         return (("offset",) if self.offset(config) is not False else ()) + (
@@ -187,12 +187,12 @@ class _WithState(ModelKind):
         def with_offset(m):
             if offset is not True:
                 return m
-            res = np.concatenate([np.asarray(e["displacement"]) - self.displacement(m, e) for e in recs])
+            res = np.concatenate([np.asarray(e["displacement"]) - self.displacement(config, m, e) for e in recs])
             b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
             return eqx.tree_at(lambda a: a.offset, m, jnp.asarray(b + float(m.offset), m.offset.dtype))
 
         def error(m) -> float:
-            total = sum(float(np.sum(((self.displacement(m, e) - np.asarray(e["displacement"]))
+            total = sum(float(np.sum(((self.displacement(config, m, e) - np.asarray(e["displacement"]))
                                       / max(float(np.ptp(e["displacement"])), np.finfo(float).tiny)) ** 2))
                         for e in recs)
             return total if np.isfinite(total) else np.inf

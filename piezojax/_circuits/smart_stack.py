@@ -41,8 +41,8 @@ class SmartStackCircuit(AbstractCircuit):
     - `d33` [C/N] > 0; `amplifier_capacitance` $C$ [F] > 0 (104 pF in the paper).
     - `k_p`, `k_s`, `k_e` [N/m] > 0: preload spring, stack and stage stiffness; `m_e` [kg] > 0, `c_e` [N s/m] ≥ 0.
     - `crosstalk`: $p_c$ [V/V], the sensor voltage per actuator volt (negative in the paper), default 0.
-    - `actuator`: a `pj.AbstractHysteresis` mapping the drive $V_a$ to $x_a$ [m] (e.g. a `pj.PrandtlIshlinskii` in m/V), or `None`
-      (then pass `x_a` to `__call__`).
+    - `actuator`: a `pj.AbstractHysteresis` mapping the drive $V_a$ to $x_a$ [m] (e.g. a `pj.PrandtlIshlinskii` in
+      m/V), or `None` (then pass `x_a` to `__call__`).
 
     ```python
     stack = pj.SmartStackCircuit(1.6e-12, 104e-12, 6.3e6, 5e7, 0.05, 20.0, 2e7, crosstalk=-3e-4)

@@ -6,13 +6,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import PiezojaxValueError, as_parameter_array, check_signal, check_value
-from .._custom_types import Signal, SignalLike
+from .._custom_types import AbstractCell, Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 from .._parametrisation import setting
 from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
-class NarxNetwork(eqx.Module):
+class NarxNetwork(AbstractCell):
     r"""NARX model $y_k = F(y_{k-1}, \ldots, y_{k-n_y},\; x_{k-d}, \ldots, x_{k-d-n_x+1})$ with $F$ a one-hidden-layer
     network (paper 002, eq. 10–11 with the BP network of eq. 13–16).
 
