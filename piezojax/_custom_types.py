@@ -19,8 +19,8 @@ class AbstractCell(eqx.Module):
 
     The interface of what a loop steps without knowing its type: `pj.closed_loop`'s `observer` (`step` reads the
     plant's measured channels, a mapping of name to sample), `pj.InverseFeedforward`'s `inverse` (`step` reads the
-    desired output). Every hysteresis operator (`pj.AbstractHysteresis`) and its inverse is one; so is
-    `pj.SensorLayerObserver`, and `pj.NarxNetwork`. A cell of one's own subclasses it:
+    desired output). Every hysteresis operator (`pj.AbstractHysteresis`) and its inverse is one; so are
+    `pj.SensorLayerObserver` and `pj.NarxNetwork`. A cell of one's own subclasses it:
 
     ```python
     class Gain(pj.AbstractCell):

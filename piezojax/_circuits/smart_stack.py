@@ -118,7 +118,8 @@ class SmartStackCircuit(AbstractCircuit):
         return self.series_stiffness() * x_a + self.k_e * high_pass.simulate(x_a, dt, hold="foh")
 
     def sensor_force(self, x_a: SignalLike, dt: ArrayLike) -> Signal:
-        """The force on the sensor layer $F_s$ [N] (eq. 3) for the stack displacement `x_a` [m] (linear between samples)."""
+        """The force on the sensor layer $F_s$ [N] (eq. 3) for the stack displacement `x_a` [m] (linear between
+        samples)."""
         m, dt, s = prepare(self, dt, x_a=x_a)
         return m._force(s["x_a"], dt)
 
