@@ -441,9 +441,9 @@ def _getter(path: list[str]):
 # ------------------------------------------------------------------------------------------------ initial values
 
 
-def _start_error(model, dataset, predictor) -> float:
-    """Sum over experiments of the squared displacement error of an actuator (predicted by `predictor`), relative to
-    the displacement range."""
+def _start_error(model, dataset, predictor=None) -> float:
+    """Sum over experiments of the squared displacement error of an actuator (predicted by `predictor`, default the
+    built-in one of its type), relative to the displacement range."""
     total = 0.0
     for e in dataset:
         if e.has("displacement"):
