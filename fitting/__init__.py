@@ -15,8 +15,7 @@
   (`vmap` over the fleet, sharded over devices), returning a `FleetResult`.
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 - Figures (engineering units, no pyplot state): `plot_timeseries`, `plot_loops`, `plot_parameters`,
-  `plot_convergence` (also `FitResult.plot(kind)`), `save_figures`; `engineering_scale`, `channel_label`,
-  `figure_name`.
+  `plot_convergence` (also `FitResult.plot(kind)`), `save_figures`.
 - Files: the submodule `fitting.files` writes files and folders completely or not at all (used by the command line
   and the experiments; not part of the calibration API above).
 
@@ -38,8 +37,7 @@ _EXPORTS = {
     "._kinds": ("BlockKind", "ConfigTable", "StartData", "register_kind", "registered_kinds", "unregister_kind"),
     "._model_kinds": ("ModelKind", "register_model_kind"),
     "._plots": (
-        "channel_label", "engineering_scale", "figure_name", "plot_convergence", "plot_loops", "plot_parameters",
-        "plot_timeseries", "save_figures",
+        "plot_convergence", "plot_loops", "plot_parameters", "plot_timeseries", "save_figures",
     ),
     "._predict": (
         "ExperimentArrays", "Predictor", "actuator_predictor", "default_predictor", "hysteresis_predictor",
@@ -97,9 +95,6 @@ if TYPE_CHECKING:  # the same names for static analysis
     )
     from ._model_kinds import ModelKind as ModelKind, register_model_kind as register_model_kind
     from ._plots import (
-        channel_label as channel_label,
-        engineering_scale as engineering_scale,
-        figure_name as figure_name,
         plot_convergence as plot_convergence,
         plot_loops as plot_loops,
         plot_parameters as plot_parameters,

@@ -37,10 +37,19 @@ from piezojax._checks import PiezojaxValueError, refusals_as_nan
 from ._problem import Problem, ProblemCore, channel_weights, jacobian_scales, model_error, over_starts
 from ._results import FitResult, summarise
 from ._solve import PrecisionWarning, caller_level, make_solver
-from ._solver import AbstractNormalSolver, Linearisation, Progress, Verdict, as_progress_meter, result_message
-
-# an actuator's state in the loop, as an int code: 0 running; the others are `RESULTS` names (two ways to converge)
-_RUNNING, _CONVERGED, _CONVERGED_WINDOW, _STALLED, _LINEAR_SOLVE, _NONFINITE, _NONFINITE_INITIAL, _PADDING = range(8)
+from ._solver import (
+    PADDING,
+    RUNNING,
+    AbstractNormalSolver,
+    Bookkeeping,
+    Linearisation,
+    Progress,
+    Verdict,
+    advance,
+    as_progress_meter,
+    begin,
+    verdict_of,
+)
 
 
 class _Carry(eqx.Module):
@@ -50,10 +59,7 @@ class _Carry(eqx.Module):
     lin: Linearisation  # the linearisation at `y`
     state: Any  # the solver's state
     steps: jax.Array
-    accepted: jax.Array
-    since: jax.Array  # consecutive rejected trials
-    recent: jax.Array  # the last `window + 1` accepted costs, oldest first (the start's cost repeated at first)
-    code: jax.Array
+    book: Bookkeeping  # the loop's stopping tests, as `fitting.iterate`'s
 
 
 def _select(pred, new, old):
@@ -68,17 +74,14 @@ def _linearise_one(core: ProblemCore, u) -> tuple[Linearisation, jax.Array]:
 
 def _init_one(solver: AbstractNormalSolver, window: int, core: ProblemCore, u, padding):
     lin, finite = _linearise_one(core, u)
-    code = jnp.where(jnp.isfinite(lin.cost) & finite, _RUNNING, _NONFINITE_INITIAL)
-    code = jnp.where(padding, _PADDING, code)
-    zero = jnp.zeros((), jnp.int32)
-    return _Carry(u, lin, solver.init(u, lin), zero, zero, zero, jnp.full((window + 1,), lin.cost),
-                  code.astype(jnp.int32))
+    book = begin(lin.cost, finite, window)
+    book = eqx.tree_at(lambda b: b.code, book, jnp.where(padding, PADDING, book.code).astype(jnp.int32))
+    return _Carry(u, lin, solver.init(u, lin), jnp.zeros((), jnp.int32), book)
 
 
 def _step_one(solver: AbstractNormalSolver, window: int, max_rejections: int, core: ProblemCore, c: _Carry) -> _Carry:
     """One iteration of one actuator (a finished actuator stays as it is)."""
-    ftol = jnp.asarray(solver.ftol, c.y.dtype)
-    active = c.code == _RUNNING
+    active = c.book.code == RUNNING
     # the trial point comes from the descent alone; the model is linearised there once, and the solver's step is
     # then taken with those residuals (the same trial point: the descent is deterministic)
     probe, _ = solver.step(lambda y: c.lin.r, c.y, c.lin, c.state, active)
@@ -87,20 +90,12 @@ def _step_one(solver: AbstractNormalSolver, window: int, max_rejections: int, co
     terminate = solver.terminate(c.y, c.lin, trial, new_state)
     take = active & trial.accept & trial.ok
     lin_t = Linearisation(lin_t.r, trial.cost, lin_t.g, lin_t.h)
-    accepted = c.accepted + take.astype(jnp.int32)
-    recent = jnp.where(take, jnp.concatenate([c.recent[1:], trial.cost[None]]), c.recent)
-    since = jnp.where(take, 0, c.since + active.astype(jnp.int32))
-    flat = take & (accepted >= window) & (recent[0] - recent[-1] <= ftol * window * recent[-1])
-    code = jnp.select(
-        [~active, ~trial.ok, terminate, flat, take & ~finite_t, ~take & (since >= max_rejections)],
-        [c.code, _LINEAR_SOLVE, _CONVERGED, _CONVERGED_WINDOW, _NONFINITE, _STALLED],
-        _RUNNING,
-    ).astype(jnp.int32)
+    book = advance(c.book, cost=trial.cost, take=take, ok=trial.ok, terminate=terminate, finite=finite_t,
+                   ftol=solver.ftol, window=window, max_rejections=max_rejections)
     lin = _select(take, lin_t, c.lin)
     state = _select(active, new_state, c.state)
     state = _select(take, solver.relinearise(state, lin), state)
-    return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), accepted, since,
-                  recent, code)
+    return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), book)
 
 
 def _fleet_map(fn):
@@ -149,32 +144,6 @@ def _shard(tree, mesh: Mesh | None, device=None):
         return jtu.tree_map(lambda x: jax.device_put(x, device) if eqx.is_array(x) else x, tree)
     sharding = NamedSharding(mesh, PartitionSpec("fleet"))
     return jtu.tree_map(lambda x: jax.device_put(x, sharding) if eqx.is_array(x) else x, tree)
-
-
-_VERDICTS = {
-    _CONVERGED: "successful", _CONVERGED_WINDOW: "successful", _STALLED: "stalled",
-    _LINEAR_SOLVE: "linear_solve_failed", _NONFINITE: "nonfinite", _NONFINITE_INITIAL: "nonfinite_initial",
-}
-
-
-def _verdict(code: int, solver, ftol: float, window: int, max_rejections: int, since: int,
-             max_steps: int, interrupted: bool) -> Verdict:
-    if code == _CONVERGED:
-        return Verdict("successful", solver.converged_reason)
-    if code == _CONVERGED_WINDOW:
-        return Verdict("successful", f"converged (mean relative cost decrease per accepted step over the last "
-                                     f"{window} below ftol = {ftol:g})")
-    if code == _STALLED:
-        return Verdict("stalled", f"no decrease of the cost in {since} consecutive trial steps (stalled, diverging, "
-                                  "or a kink of an exact operator: refit with fitting.solve)")
-    if code == _NONFINITE_INITIAL:
-        return Verdict("nonfinite_initial", "the model's predictions or Jacobian are not finite at the initial "
-                                            "parameters")
-    if code == _RUNNING:
-        if interrupted:
-            return Verdict("interrupted", result_message("interrupted"))
-        return Verdict("max_steps_reached", f"max_steps = {max_steps} reached before convergence")
-    return Verdict(_VERDICTS[code], result_message(_VERDICTS[code]))
 
 
 @dataclasses.dataclass
@@ -467,8 +436,8 @@ def fit_fleet(
         shapes = eqx.filter_eval_shape(_fleet_init, solver, window, statics, arr_b, u_b, pad_b)
         carry = jtu.tree_map(lambda x: jnp.full(x.shape, np.nan if jnp.issubdtype(x.dtype, jnp.inexact) else 0,
                                                 x.dtype), shapes)
-        code = jnp.where(pad_b, _PADDING, _RUNNING).astype(jnp.int32)
-        carry = eqx.tree_at(lambda c: (c.y, c.code), carry, (u_b, code))
+        code = jnp.where(pad_b, PADDING, RUNNING).astype(jnp.int32)
+        carry = eqx.tree_at(lambda c: (c.y, c.book.code), carry, (u_b, code))
         return {"carry": carry, "arrays": arr_b, "initial": np.full(u_b.shape[0], np.nan), "finished": False}
 
     batches, t0, interrupted = [], time.perf_counter(), False
@@ -484,13 +453,13 @@ def fit_fleet(
                         batch["carry"] = _fleet_step(solver, window, max_rejections, statics, batch["arrays"],
                                                      batch["carry"])
                     done = min(done + steps_per_call, max_steps)
-                    codes = np.asarray(batch["carry"].code)
-                    running = int(np.sum(codes == _RUNNING)) + max(0, n - b0 - batch_size)
+                    codes = np.asarray(batch["carry"].book.code)
+                    running = int(np.sum(codes == RUNNING)) + max(0, n - b0 - batch_size)
                     best = float(np.nanmin(np.concatenate([np.asarray(b["carry"].lin.cost) for b in batches])[:n]))
-                    accepted = np.concatenate([np.asarray(b["carry"].accepted) for b in batches])[:n]
+                    accepted = np.concatenate([np.asarray(b["carry"].book.accepted) for b in batches])[:n]
                     meter_state = meter.step(meter_state, Progress(
                         "[fleet] ", done, best, int(np.median(accepted)), running, n, time.perf_counter() - t0))
-                    if not np.any(codes == _RUNNING):
+                    if not np.any(codes == RUNNING):
                         break
                 batch["finished"] = True
         except KeyboardInterrupt:
@@ -502,7 +471,7 @@ def fit_fleet(
     jax.block_until_ready([b["carry"] for b in batches])
     seconds = time.perf_counter() - t0
     # an actuator still running when the loop ended: interrupted, unless its batch ran to max_steps
-    cut = np.concatenate([np.full(b["carry"].code.shape[0], not b["finished"]) for b in batches])[:n]
+    cut = np.concatenate([np.full(b["carry"].book.code.shape[0], not b["finished"]) for b in batches])[:n]
 
     def joined(get):
         return jtu.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *[get(b) for b in batches])
@@ -518,10 +487,12 @@ def fit_fleet(
     core = eqx.combine(core_arrays, statics)
     initial_cost = np.concatenate([b["initial"] for b in batches])[:n]
     scales_np = np.asarray(core.scales)
-    codes = np.asarray(carry.code)
-    since = np.asarray(carry.since)
-    verdicts = [_verdict(int(c), solver, float(solver.ftol), window, max_rejections, int(k), max_steps,
-                         interrupted and bool(cut[i])) for i, (c, k) in enumerate(zip(codes, since))]
+    codes = np.asarray(carry.book.code)
+    since = np.asarray(carry.book.since)
+    stalled_note = "; or a kink of an exact operator: refit with fitting.solve"
+    verdicts = [verdict_of(int(c), solver=solver, window=window, since=int(k), max_steps=max_steps,
+                           interrupted=interrupted and bool(cut[i]), stalled_note=stalled_note)
+                for i, (c, k) in enumerate(zip(codes, since))]
     for i, v in enumerate(verdicts):
         if v.code == "nonfinite_initial":  # the model's own message, from a trace that raises
             why = model_error(problem(i, scales_np[i]).core, carry.y[i])
@@ -535,7 +506,7 @@ def fit_fleet(
         codes=[v.code for v in verdicts],
         reasons=[v.reason for v in verdicts],
         steps=np.asarray(carry.steps),
-        accepted_steps=np.asarray(carry.accepted),
+        accepted_steps=np.asarray(carry.book.accepted),
         initial_cost=initial_cost,
         cost=np.asarray(carry.lin.cost),
         rmse=_rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in per_actuator]) for c in targets}),

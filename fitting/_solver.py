@@ -1,7 +1,8 @@
 r"""The least-squares solvers, as optimistix splits them: a small abstract solver (`init` / `step` / `terminate`),
 each concrete solver a *descent* (the step from a linearisation) and a *search* (whether to take it, and the next
-step size or radius); a results enumeration with messages; a pluggable progress meter; and `iterate`, the loop that
-runs a solver from several starts at once.
+step size or radius); a results enumeration with messages; a pluggable progress meter; the loop's own stopping
+tests (`advance`: flat cost, stall, non-finite Jacobian; shared with `fit_fleet`) and one verdict per stopping code
+(`verdict_of`); and `iterate`, the loop that runs a solver from several starts at once.
 
 Everything works in normal-equation form: a linearisation at an accepted point is $(r, \tfrac12\|r\|^2, g, H)$ with
 $g = J^\top r$ and $H = J^\top J$ (`Problem.normal_equations`: forward mode, a chunk of experiments at a time, the
@@ -25,7 +26,7 @@ import jax.tree_util as jtu
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from piezojax._checks import PiezojaxError, PiezojaxValueError
 
@@ -463,6 +464,81 @@ class TrustRegion(AbstractNormalSolver):
                            (self.search.shrink * state.radius, state.alpha / self.search.shrink))
 
 
+# ---------------------------------------------------------------------------------------------------- stopping
+
+# How a start stands after a step, as a traced int: running, or why it stopped. The solver's own test and the
+# loop's flat-cost test are two ways to converge with different reasons; `PADDING` marks a fleet's filler rows.
+RUNNING, CONVERGED, CONVERGED_FLAT, STALLED, LINEAR_SOLVE_FAILED, NONFINITE, NONFINITE_INITIAL, PADDING = range(8)
+
+
+class Bookkeeping(eqx.Module):
+    """One start's state for the loop's own stopping tests, beside the solver's `terminate` (a leading axis of
+    starts when stacked). `iterate` and `fit_fleet` both advance it with `advance`, so the two loops stop alike."""
+
+    accepted: Int[Array, ""]  # accepted steps
+    since: Int[Array, ""]  # consecutive rejected trials
+    recent: Float[Array, " window_plus_1"]  # the last `window + 1` accepted costs, oldest first (the first repeated)
+    code: Int[Array, ""]  # `RUNNING` or why the start stopped
+
+
+def begin(cost, finite, window: int) -> Bookkeeping:
+    """The bookkeeping of a start whose linearisation at its initial point has `cost` (and is `finite`)."""
+    zero = jnp.zeros((), jnp.int32)
+    code = jnp.where(jnp.isfinite(cost) & finite, RUNNING, NONFINITE_INITIAL).astype(jnp.int32)
+    return Bookkeeping(zero, zero, jnp.full((window + 1,), cost), code)
+
+
+def advance(book: Bookkeeping, *, cost, take, ok, terminate, finite, ftol, window: int, max_rejections: int
+            ) -> Bookkeeping:
+    r"""One step of a running start (a stopped one stays as it is): `take` whether its trial was accepted (at a
+    trial cost `cost`), `ok` whether the linear solve succeeded, `terminate` the solver's own test, `finite` whether
+    the Jacobian at the new point is finite (`True` where not known yet).
+
+    The start ends, in this order: `LINEAR_SOLVE_FAILED`; `CONVERGED` (the solver's test); `CONVERGED_FLAT` when its
+    accepted steps no longer lower the cost (the mean relative decrease over the last `window` accepted steps below
+    `ftol`: parameters drifting along a flat valley); `NONFINITE` (the Jacobian at the accepted point); `STALLED`
+    after `max_rejections` consecutive rejected trials."""
+    active = book.code == RUNNING
+    take = active & take
+    accepted = book.accepted + take.astype(jnp.int32)
+    recent = jnp.where(take, jnp.concatenate([book.recent[1:], jnp.asarray(cost, book.recent.dtype)[None]]),
+                       book.recent)
+    since = jnp.where(take, 0, book.since + active.astype(jnp.int32))
+    ftol = jnp.asarray(ftol, recent.dtype)
+    flat = take & (accepted >= window) & (recent[0] - recent[-1] <= ftol * window * recent[-1])
+    code = jnp.select(
+        [~active, ~ok, terminate, flat, take & ~finite, ~take & (since >= max_rejections)],
+        [book.code, LINEAR_SOLVE_FAILED, CONVERGED, CONVERGED_FLAT, NONFINITE, STALLED],
+        RUNNING,
+    ).astype(jnp.int32)
+    return Bookkeeping(accepted, since, recent, code)
+
+
+def verdict_of(code: int, *, solver, window: int, since: int, max_steps: int, interrupted: bool = False,
+               stalled_note: str = "") -> Verdict:
+    """The `Verdict` of a start whose bookkeeping ended with `code` (`RUNNING`: it ran out of steps, or was
+    interrupted); `since` its consecutive rejected trials; `stalled_note` is appended to a stall's reason."""
+    if code == CONVERGED:
+        return Verdict("successful", solver.converged_reason)
+    if code == CONVERGED_FLAT:
+        return Verdict("successful", f"converged (mean relative cost decrease per accepted step over the last "
+                                     f"{window} below ftol = {float(solver.ftol):g})")
+    if code == STALLED:
+        return Verdict("stalled", f"no decrease of the cost in {since} consecutive trial steps (stalled or "
+                                  f"diverging{stalled_note})")
+    if code == NONFINITE:
+        return Verdict("nonfinite", "the Jacobian is not finite at an accepted point")
+    if code == NONFINITE_INITIAL:
+        return Verdict("nonfinite_initial", result_message("nonfinite_initial"))
+    if code == LINEAR_SOLVE_FAILED:
+        return Verdict("linear_solve_failed", result_message("linear_solve_failed"))
+    if code == RUNNING:
+        if interrupted:
+            return Verdict("interrupted", result_message("interrupted"))
+        return Verdict("max_steps_reached", f"max_steps = {max_steps} reached before convergence")
+    raise ValueError(f"no verdict for the bookkeeping code {code}")
+
+
 # ---------------------------------------------------------------------------------------------------- the loop
 
 
@@ -532,29 +608,44 @@ def _refused_trials(solver, core, y, lin, state, active) -> np.ndarray:
     return refused
 
 
+@eqx.filter_jit
+def _begin(cost, finite, window):
+    return jax.vmap(lambda c, f: begin(c, f, window))(cost, finite)
+
+
+@eqx.filter_jit
+def _advance(book, cost, take, ok, terminate, ftol, window, max_rejections):
+    def one(book, cost, take, ok, terminate):
+        return advance(book, cost=cost, take=take, ok=ok, terminate=terminate, finite=jnp.asarray(True), ftol=ftol,
+                       window=window, max_rejections=max_rejections)
+
+    return jax.vmap(one)(book, cost, take, ok, terminate)
+
+
 def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: int,
             meter: AbstractProgressMeter, label: str = "", max_rejections: int = 40, window: int = 5) -> list[Run]:
     r"""Run `solver` from every start in `u0` (shape `(starts, p)`) at once, stepped from Python (progress meter,
     Ctrl-C): the starts run in lockstep under `vmap`, a finished start is frozen, and each has its own state,
     history and verdict.
 
-    Besides the solver's own test (`terminate`), a start ends: converged when its accepted steps no longer lower the
-    cost (mean relative decrease over the last `window` below the solver's `ftol`: parameters drifting along a flat
-    valley); `stalled` after `max_rejections` consecutive rejected trials; `max_steps_reached`; `interrupted` on
-    Ctrl-C (the last accepted point is kept). A trial point the model refuses is a failed trial of that start only:
-    the others take their step as usual. `piezojax`'s own checks are traced as NaN refusals (a non-finite trial);
-    an `eqx.error_if` in a user's model raises for the whole batch, so it is caught and the starts' trials are run
-    one by one to find the refused ones.
+    Besides the solver's own test (`terminate`), a start ends by the loop's tests (`advance`): converged when its
+    accepted steps no longer lower the cost (mean relative decrease over the last `window` below the solver's
+    `ftol`: parameters drifting along a flat valley); `stalled` after `max_rejections` consecutive rejected trials;
+    `max_steps_reached`; `interrupted` on Ctrl-C (the last accepted point is kept). A trial point the model refuses
+    is a failed trial of that start only: the others take their step as usual. `piezojax`'s own checks are traced
+    as NaN refusals (a non-finite trial); an `eqx.error_if` in a user's model raises for the whole batch, so it is
+    caught and the starts' trials are run one by one to find the refused ones.
     """
     n_starts = u0.shape[0]
-    ftol = float(solver.ftol)
+    ftol = jnp.asarray(float(solver.ftol))
     y = u0
     r, cost, g, h, finite = linearise(core, y)
     lin = Linearisation(r, cost, g, h)
+    book = _begin(cost, finite, window)
     cost_np, finite_np = np.asarray(cost), np.asarray(finite)
     histories = [[float(c)] for c in cost_np]
     history_steps = [[0] for _ in range(n_starts)]
-    steps, accepted, since = np.zeros(n_starts, int), np.zeros(n_starts, int), np.zeros(n_starts, int)
+    steps = np.zeros(n_starts, int)
     fresh = np.ones(n_starts, bool)  # whether `lin` is at the start's current point
     verdicts: list = [None] * n_starts
     for i in range(n_starts):
@@ -564,7 +655,7 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                                                        "parameters" + (f" ({why})" if why else ""))
         elif not finite_np[i]:
             verdicts[i] = Verdict("nonfinite_initial", "the Jacobian is not finite at the initial parameters")
-    active = np.array([v is None for v in verdicts])
+    active = np.asarray(book.code) == RUNNING
     state = _init(solver, y, lin)
     meter_state = meter.init(label, n_starts)
     t0 = time.perf_counter()
@@ -600,61 +691,52 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
             trial, new_state, terminate = out
             if refused.any():
                 new_state = _refuse(solver, state, new_state, jnp.asarray(refused))
-            accept_np, terminate_np = np.asarray(trial.accept) & ~refused, np.asarray(terminate) & ~refused
-            ok_np, cost_eval_np = np.asarray(trial.ok) | refused, np.asarray(trial.cost)
-            take = active & accept_np & ok_np
-            relinearise = np.zeros(n_starts, bool)
+            # a refused trial: a rejected one (the linear solve did not fail)
+            kept = jnp.asarray(~refused)
+            ok = trial.ok | ~kept
+            take_j = trial.accept & ok & kept
+            book = _advance(book, trial.cost, take_j, ok, terminate & kept, ftol, window, max_rejections)
+            codes, take = np.asarray(book.code), active & np.asarray(take_j)
+            cost_eval_np = np.asarray(trial.cost)
             for i in np.flatnonzero(active):
                 steps[i] = k
-                if not ok_np[i]:
-                    verdicts[i] = Verdict("linear_solve_failed", result_message("linear_solve_failed"))
-                    continue
                 if take[i]:
-                    accepted[i], since[i] = accepted[i] + 1, 0
                     fresh[i] = False
-                    hist = histories[i]
-                    hist.append(float(cost_eval_np[i]))
+                    histories[i].append(float(cost_eval_np[i]))
                     history_steps[i].append(k)
-                else:
-                    since[i] += 1
-                if terminate_np[i]:
-                    verdicts[i] = Verdict("successful", solver.converged_reason)
-                elif take[i]:
-                    if len(hist) > window and hist[-window - 1] - hist[-1] <= ftol * window * hist[-1]:
-                        verdicts[i] = Verdict("successful", f"converged (mean relative cost decrease per accepted "
-                                                            f"step over the last {window} below ftol = {ftol:g})")
-                    else:
-                        relinearise[i] = True
-                elif since[i] >= max_rejections:
-                    if not model_errors[i] and not np.isfinite(cost_eval_np[i]):  # a refusal traced as NaN
-                        model_errors[i] = model_error(core, trial.y[i])
-                    why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
-                    verdicts[i] = Verdict("stalled", f"no decrease of the cost in {since[i]} consecutive trial "
-                                                     f"steps (stalled or diverging{why})")
+                if codes[i] == STALLED and not model_errors[i] and not np.isfinite(cost_eval_np[i]):
+                    model_errors[i] = model_error(core, trial.y[i])  # a refusal traced as NaN
             y, lin_r, lin_cost = _where(jnp.asarray(take), (trial.y, trial.r, trial.cost), (y, lin.r, lin.cost))
             lin = Linearisation(lin_r, lin_cost, lin.g, lin.h)
             state = _where(jnp.asarray(active), new_state, state)
-            active = np.array([v is None for v in verdicts])
+            relinearise = take & (codes == RUNNING)
             if relinearise.any():
                 _, _, g_new, h_new, finite = linearise(core, y)
                 g, h = _where(jnp.asarray(relinearise), (g_new, h_new), (lin.g, lin.h))
                 lin = Linearisation(lin.r, lin.cost, g, h)
                 state = _relinearise(solver, state, lin, jnp.asarray(relinearise))
                 fresh |= relinearise
-                for i in np.flatnonzero(relinearise & ~np.asarray(finite)):
-                    verdicts[i] = Verdict("nonfinite", "the Jacobian is not finite at an accepted point")
-                active = np.array([v is None for v in verdicts])
+                nonfinite = jnp.asarray(relinearise) & ~finite
+                book = eqx.tree_at(lambda b: b.code, book, jnp.where(nonfinite, NONFINITE, book.code))
+                codes = np.asarray(book.code)
+            for i in np.flatnonzero(active & (codes != RUNNING)):
+                why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
+                verdicts[i] = verdict_of(int(codes[i]), solver=solver, window=window,
+                                         since=int(np.asarray(book.since)[i]), max_steps=max_steps, stalled_note=why)
+            active = codes == RUNNING
             best = min(hh[-1] for hh in histories)
-            meter_state = meter.step(meter_state, Progress(label, k, best, int(accepted[0]), int(active.sum()),
+            meter_state = meter.step(meter_state, Progress(label, k, best, len(histories[0]) - 1, int(active.sum()),
                                                            n_starts, time.perf_counter() - t0))
     except KeyboardInterrupt:
         for i in np.flatnonzero(active):
-            verdicts[i] = Verdict("interrupted", result_message("interrupted"))
+            verdicts[i] = verdict_of(RUNNING, solver=solver, window=window, since=0, max_steps=max_steps,
+                                     interrupted=True)
     finally:
         meter.close(meter_state)
     runs = []
     for i in range(n_starts):
-        verdict = verdicts[i] or Verdict("max_steps_reached", f"max_steps = {max_steps} reached before convergence")
+        verdict = verdicts[i] or verdict_of(RUNNING, solver=solver, window=window, since=0, max_steps=max_steps)
         lin_i = jtu.tree_map(lambda x: x[i], lin) if fresh[i] else None
-        runs.append(Run(y[i], int(steps[i]), int(accepted[i]), histories[i], history_steps[i], verdict, lin_i))
+        accepted = len(histories[i]) - 1
+        runs.append(Run(y[i], int(steps[i]), accepted, histories[i], history_steps[i], verdict, lin_i))
     return runs

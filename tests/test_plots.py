@@ -7,6 +7,7 @@ from matplotlib.figure import Figure
 
 import fitting
 import piezojax as pj
+from fitting import _plots as fitting_plots
 from piezojax import PiezojaxValueError
 
 
@@ -28,18 +29,18 @@ def result():
 
 
 def test_engineering_scale_picks_the_prefix():
-    assert fitting.engineering_scale([2.3e-5, -1e-6], "m") == (1e6, "µm")
-    assert fitting.engineering_scale([0.5], "N") == (1e3, "mN")
-    assert fitting.engineering_scale([150.0, -3.0], "V") == (1.0, "V")
-    assert fitting.engineering_scale([1.0e-9], "m") == (1e9, "nm")  # exactly 1 nm stays in nm
-    assert fitting.engineering_scale([0.0, np.nan], "m") == (1.0, "m")
-    assert fitting.engineering_scale([3.0], "") == (1.0, "")
-    assert fitting.channel_label("displacement", [4e-6]) == (1e6, "displacement [µm]")
-    assert fitting.channel_label("charge", [2e-5], what="residual") == (1e6, "residual [µC]")
-    assert fitting.channel_label("v_in", [150.0]) == (1.0, "drive voltage [V]")
-    assert fitting.figure_name("piezo full (7)") == "piezo_full_7"
-    assert fitting.figure_name("run/2") == "run_2"
-    assert fitting.figure_name("(((") == "experiment"
+    assert fitting_plots.engineering_scale([2.3e-5, -1e-6], "m") == (1e6, "µm")
+    assert fitting_plots.engineering_scale([0.5], "N") == (1e3, "mN")
+    assert fitting_plots.engineering_scale([150.0, -3.0], "V") == (1.0, "V")
+    assert fitting_plots.engineering_scale([1.0e-9], "m") == (1e9, "nm")  # exactly 1 nm stays in nm
+    assert fitting_plots.engineering_scale([0.0, np.nan], "m") == (1.0, "m")
+    assert fitting_plots.engineering_scale([3.0], "") == (1.0, "")
+    assert fitting_plots.channel_label("displacement", [4e-6]) == (1e6, "displacement [µm]")
+    assert fitting_plots.channel_label("charge", [2e-5], what="residual") == (1e6, "residual [µC]")
+    assert fitting_plots.channel_label("v_in", [150.0]) == (1.0, "drive voltage [V]")
+    assert fitting_plots.figure_name("piezo full (7)") == "piezo_full_7"
+    assert fitting_plots.figure_name("run/2") == "run_2"
+    assert fitting_plots.figure_name("(((") == "experiment"
 
 
 def _labels(fig: Figure) -> list[str]:

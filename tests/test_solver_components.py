@@ -55,6 +55,59 @@ def test_results_enumeration_names_every_code_with_a_message():
     assert fitting.Verdict("converged_at_kink", "r").success and fitting.Verdict("nonfinite", "r").hard
 
 
+def test_the_loops_stopping_tests_are_one_function_in_order():
+    # `advance` is the stopping bookkeeping of both loops (`fitting.solve`'s and the fleet's), under jit and vmap
+    from fitting import _solver as S
+
+    def run(costs, takes, *, ok=True, terminate=False, finite=True, window=3, max_rejections=4, start=10.0):
+        book = S.begin(jnp.asarray(start), jnp.asarray(True), window)
+        step = jax.jit(lambda b, c, t: S.advance(b, cost=c, take=t, ok=jnp.asarray(ok), finite=jnp.asarray(finite),
+                                                 terminate=jnp.asarray(terminate), ftol=1e-2, window=window,
+                                                 max_rejections=max_rejections))
+        codes = []
+        for c, t in zip(costs, takes):
+            book = step(book, jnp.asarray(c), jnp.asarray(t))
+            codes.append(int(book.code))
+        return book, codes
+
+    # decreasing costs keep running; three accepted steps that lower the cost by < 1 % each: converged (flat)
+    book, codes = run([5.0, 2.0, 1.0, 0.999, 0.998, 0.997], [True] * 6)
+    assert codes == [S.RUNNING] * 5 + [S.CONVERGED_FLAT] and int(book.accepted) == 6
+    assert np.asarray(book.recent).tolist() == [1.0, 0.999, 0.998, 0.997]
+    # a stopped start stays as it is: later steps change nothing
+    again = S.advance(book, cost=jnp.asarray(0.1), take=jnp.asarray(True), ok=jnp.asarray(True),
+                      terminate=jnp.asarray(False), finite=jnp.asarray(True), ftol=1e-2, window=3, max_rejections=4)
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.all(a == b)), again, book))
+    # fewer than `window` accepted steps are never flat, however small the decrease
+    assert run([9.9999, 9.9998], [True, True])[1] == [S.RUNNING, S.RUNNING]
+    # rejected trials count up to the stall; an accepted one in between resets the count
+    book, codes = run([np.nan] * 2 + [9.0] + [np.inf] * 4, [False, False, True] + [False] * 4)
+    assert codes == [S.RUNNING] * 6 + [S.STALLED] and int(book.since) == 4
+    # precedence: a failed linear solve before the solver's own test, that before the flat test, a non-finite
+    # Jacobian at the accepted point last
+    assert run([1.0], [False], ok=False, terminate=True)[1] == [S.LINEAR_SOLVE_FAILED]
+    assert run([9.99], [True], terminate=True, window=1)[1] == [S.CONVERGED]  # flat too, but the solver first
+    assert run([9.99], [True], window=1)[1] == [S.CONVERGED_FLAT]
+    assert run([5.0], [True], finite=False)[1] == [S.NONFINITE]
+    assert run([5.0], [False], finite=False)[1] == [S.RUNNING]  # not accepted: its Jacobian is not used
+    # a start that is not finite at its initial point never runs
+    assert int(S.begin(jnp.asarray(np.nan), jnp.asarray(True), 3).code) == S.NONFINITE_INITIAL
+    assert int(S.begin(jnp.asarray(1.0), jnp.asarray(False), 3).code) == S.NONFINITE_INITIAL
+    # every code has a verdict; the reasons carry the numbers of the run
+    solver = fitting.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
+    codes = {S.CONVERGED: "successful", S.CONVERGED_FLAT: "successful", S.STALLED: "stalled",
+             S.LINEAR_SOLVE_FAILED: "linear_solve_failed", S.NONFINITE: "nonfinite",
+             S.NONFINITE_INITIAL: "nonfinite_initial", S.RUNNING: "max_steps_reached"}
+    for code, name in codes.items():
+        assert S.verdict_of(code, solver=solver, window=3, since=7, max_steps=11).code == name
+    assert "in 7 consecutive" in S.verdict_of(S.STALLED, solver=solver, window=3, since=7, max_steps=11).reason
+    assert "max_steps = 11" in S.verdict_of(S.RUNNING, solver=solver, window=3, since=0, max_steps=11).reason
+    assert S.verdict_of(S.RUNNING, solver=solver, window=3, since=0, max_steps=11, interrupted=True).code == (
+        "interrupted")
+    with pytest.raises(ValueError, match="no verdict"):
+        S.verdict_of(S.PADDING, solver=solver, window=3, since=0, max_steps=11)
+
+
 def test_a_refused_trial_shrinks_only_its_own_start(problem):
     # start 0's first trial lands at a > 1.2, which the model refuses; the starts at 0.5 step as they do beside a
     # start that is never refused (before, every start's step shrank with it)
