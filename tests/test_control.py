@@ -289,6 +289,9 @@ def test_adaptive_offline_start_fits_the_inverse_the_preview_aims_at():
     assert errors[2] < 0.02 < errors[1], errors
     with pytest.raises(pj.PiezojaxValueError, match="preview"):
         pj.AdaptiveInverseController(jax.random.key(1), hidden=2, preview=-1)
+    # run in a loop of another preview, its targets would be misaligned: refused, naming both
+    with pytest.raises(pj.PiezojaxValueError, match=r"`preview` = 0 differs from the controller's own `preview` = 2"):
+        pj.closed_loop(aic, _plant(), np.ones(3))
 
 
 def test_network_controllers_name_a_key_that_is_no_key():

@@ -10,6 +10,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 from .._checks import PiezojaxValueError, check_signal
 from .._custom_types import AbstractCell, SignalLike
 from .._dtypes import cast_module, module_float_dtype
+from .adaptive_inverse import AdaptiveInverseController
 from .base import AbstractController, AbstractPlant, as_time_major
 
 
@@ -62,7 +63,7 @@ def closed_loop(
       end), for references known in advance. The command $u_k$ first shows in the feedback at $k+1$, so a
       feedforward that reads $r_k$ aims one sample late (on a ramp of slope $s$, a lag of $s\,\Delta t$);
       `preview=1` aims it at the instant it acts. The record's `reference` and the tracking error stay aligned
-      with $r_k$.
+      with $r_k$. A `pj.AdaptiveInverseController` must be built with the same `preview` (refused otherwise).
 
     **Returns:** a `LoopRecord`.
 
@@ -82,6 +83,10 @@ def closed_loop(
                                  f"got {type(observer).__name__}")
     if not isinstance(preview, int) or isinstance(preview, bool) or preview < 0:
         raise PiezojaxValueError(f"`preview` must be an int >= 0, got {preview!r}")
+    if isinstance(controller, AdaptiveInverseController) and controller.preview != preview:
+        # its targets are the references read `preview` samples before: another loop preview misaligns them
+        raise PiezojaxValueError(f"`preview` = {preview} differs from the controller's own `preview` = "
+                                 f"{controller.preview} (the preview of the loop it was built for)")
     dtype = module_float_dtype((controller, plant, observer), reference)
     r = check_signal(reference, "reference", dtype)
     held = jnp.broadcast_to(r[-1], (min(preview, r.shape[0]),))
