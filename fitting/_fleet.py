@@ -415,7 +415,7 @@ def fit_fleet(
         where = device if mesh is None else NamedSharding(mesh, PartitionSpec())
         statics = jtu.tree_map(lambda x: jax.device_put(x, where) if eqx.is_array(x) else x, statics)
 
-    def begin(b0):
+    def begin_batch(b0):
         """Batch `b0`'s arrays (sharded; rescaled by its Jacobian) and its initial loop state."""
         part = slice(b0, b0 + batch_size)
         arr_b, u_b, th_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (arrays, u0, theta0, padding)), mesh,
@@ -445,7 +445,7 @@ def fit_fleet(
     with refusals_as_nan():
         try:
             for b0 in range(0, total, batch_size):
-                batches.append(begin(b0))
+                batches.append(begin_batch(b0))
                 batch = batches[-1]
                 done = 0
                 while done < max_steps:
@@ -489,7 +489,7 @@ def fit_fleet(
     scales_np = np.asarray(core.scales)
     codes = np.asarray(carry.book.code)
     since = np.asarray(carry.book.since)
-    stalled_note = "; or a kink of an exact operator: refit with fitting.solve"
+    stalled_note = ", or a kink of an exact operator: refit with fitting.solve"
     verdicts = [verdict_of(int(c), solver=solver, window=window, since=int(k), max_steps=max_steps,
                            interrupted=interrupted and bool(cut[i]), stalled_note=stalled_note)
                 for i, (c, k) in enumerate(zip(codes, since))]

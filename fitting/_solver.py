@@ -257,8 +257,8 @@ class AbstractNormalSolver(eqx.Module):
 
 
 def _tolerance(x):
-    # a NumPy float64 scalar: an array leaf (a new value is not a new compilation), exact on the host (the window
-    # test), cast to the parameters' dtype where the steps use it
+    # a NumPy float64 scalar: an array leaf (a new value is not a new compilation), cast to the parameters' dtype
+    # where the steps and the loop's flat-cost test (`advance`, in the costs' dtype) use it
     return np.asarray(x, np.float64)
 
 

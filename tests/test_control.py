@@ -292,6 +292,8 @@ def test_adaptive_offline_start_fits_the_inverse_the_preview_aims_at():
     # run in a loop of another preview, its targets would be misaligned: refused, naming both
     with pytest.raises(pj.PiezojaxValueError, match=r"`preview` = 0 differs from the controller's own `preview` = 2"):
         pj.closed_loop(aic, _plant(), np.ones(3))
+    with pytest.raises(pj.PiezojaxValueError, match=r"differs from the controller's own `preview` = 2"):
+        pj.closed_loop(pj.FeedforwardFeedback(aic, pj.PID(0.1, dt=1e-3, offset=0.0)), _plant(), np.ones(3), preview=1)
 
 
 def test_network_controllers_name_a_key_that_is_no_key():

@@ -83,10 +83,12 @@ def closed_loop(
                                  f"got {type(observer).__name__}")
     if not isinstance(preview, int) or isinstance(preview, bool) or preview < 0:
         raise PiezojaxValueError(f"`preview` must be an int >= 0, got {preview!r}")
-    if isinstance(controller, AdaptiveInverseController) and controller.preview != preview:
-        # its targets are the references read `preview` samples before: another loop preview misaligns them
-        raise PiezojaxValueError(f"`preview` = {preview} differs from the controller's own `preview` = "
-                                 f"{controller.preview} (the preview of the loop it was built for)")
+    for aic in jax.tree.leaves(controller, is_leaf=lambda x: isinstance(x, AdaptiveInverseController)):
+        # its targets are the references read `preview` samples before: another loop preview misaligns them (also
+        # inside a composite controller, e.g. `FeedforwardFeedback`)
+        if isinstance(aic, AdaptiveInverseController) and aic.preview != preview:
+            raise PiezojaxValueError(f"`preview` = {preview} differs from the controller's own `preview` = "
+                                     f"{aic.preview} (the preview of the loop it was built for)")
     dtype = module_float_dtype((controller, plant, observer), reference)
     r = check_signal(reference, "reference", dtype)
     held = jnp.broadcast_to(r[-1], (min(preview, r.shape[0]),))
