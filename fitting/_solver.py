@@ -719,10 +719,12 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                 nonfinite = jnp.asarray(relinearise) & ~finite
                 book = eqx.tree_at(lambda b: b.code, book, jnp.where(nonfinite, NONFINITE, book.code))
                 codes = np.asarray(book.code)
-            for i in np.flatnonzero(active & (codes != RUNNING)):
+            ended = np.flatnonzero(active & (codes != RUNNING))
+            since = np.asarray(book.since) if ended.size else None
+            for i in ended:
                 why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
-                verdicts[i] = verdict_of(int(codes[i]), solver=solver, window=window,
-                                         since=int(np.asarray(book.since)[i]), max_steps=max_steps, stalled_note=why)
+                verdicts[i] = verdict_of(int(codes[i]), solver=solver, window=window, since=int(since[i]),
+                                         max_steps=max_steps, stalled_note=why)
             active = codes == RUNNING
             best = min(hh[-1] for hh in histories)
             meter_state = meter.step(meter_state, Progress(label, k, best, len(histories[0]) - 1, int(active.sum()),
