@@ -93,6 +93,39 @@ def test_pi_jacobian_equals_autodiff(jac, smoothing, kind):
         assert np.abs(np.asarray(fast[0][2])).max() > 0.1 and np.abs(np.asarray(fast[0][4])).max() > 0.1
 
 
+@pytest.mark.parametrize("mode", ["never", "always"])
+def test_initial_state_tangents_on_a_measured_signal_equal_autodiff(mode):
+    # a fitted prehistory before measured data: tangents of (v0, z0) and the parameters, none of the signal (a
+    # symbolic zero), which the fast rule carries as two more rows of its one scan (P = dz/dz0, D = dz/dv0) instead
+    # of a recurrence per direction; sequential and parallel in time, exact and smooth, PI and play operators
+    from piezojax._config import parallel_scans
+
+    no_signal = (0, 1, 2, 3, 5, 6)  # w0, weights, thresholds, smoothing, v0, z0
+    with parallel_scans(mode):
+        fast, ref = (jax.jit(jax.jacfwd(pi_model(run), no_signal)) for run in ("_run", "_run_autodiff"))
+
+        def play(run):
+            def f(r, s, v, v0, z0):
+                op, vv, state = pj.PlayOperator(r, s)._prepare(v, (v0, z0))
+                state, y = getattr(op, run)(state, vv)
+                return y, state[1]
+
+            return jax.jit(jax.jacfwd(f, (0, 1, 3, 4)))
+
+        play_fast, play_ref = play("_run"), play("_run_autodiff")
+        for seed, smoothing in ((0, 0.0), (1, 0.0), (2, 0.3), (3, 0.05)):
+            rng = np.random.default_rng(seed)
+            args = pi_args(rng, smoothing, signal=tie_signal(rng) if seed % 2 == 0 else smooth_signal(rng))
+            if mode == "always" and smoothing > 0:
+                continue  # the parallel form is the exact operator's
+            got, want = fast(*args), ref(*args)
+            assert_trees_close(got, want, atol=1e-10)
+            # non-trivial: the output depends on the initial stop values and input
+            assert np.abs(np.asarray(got[0][5])).max() > 0.1 and np.abs(np.asarray(got[0][4])).max() > 0.1
+            a = (args[2], args[3], args[4], args[5], args[6])
+            assert_trees_close(play_fast(*a), play_ref(*a), atol=1e-10)
+
+
 def test_ties_exercise_every_rule(jac):
     # the tie signal hits: r = 0, inputs arriving exactly at +-r, and inputs held at a clamped play
     rng = np.random.default_rng(0)

@@ -85,17 +85,23 @@ def _pi_scan_jvp(exact, primals, tangents):
     w0, w, r, smoothing, v0, z0, signal = primals
     dw0, dw, dr, ds, dv0, dz0, dv = (_tangent_or_none(t) for t in tangents)
     ds = None if exact is True else ds
-    with_inputs = not (dv is None and dv0 is None and dz0 is None)
+    # initial-state tangents alone (a fitted prehistory before measured data): the rows P = dz/dz0 and D = dz/dv0 of
+    # the one scan, in the product below; with input tangents, their own recurrence (one per direction)
+    with_state = dv is None and not (dv0 is None and dz0 is None)
+    with_inputs = dv is not None
     carry, rows, ab = sensitivity_scan(
-        r, smoothing, v0, z0, signal, exact, dr is not None, ds is not None, with_inputs, with_play=True
+        r, smoothing, v0, z0, signal, exact, dr is not None, ds is not None, with_inputs, with_play=True,
+        with_state=with_state,
     )
     length = signal.shape[0]
     y = w0 * signal + rows[:, 0] @ w
-    # one matrix product for every parameter direction: rows [play, R, S] against [dw, -w dr, -w ds]
+    # one matrix product for every parameter direction: rows [play, R, S, P, D] against
+    # [dw, -w dr, -w ds, -w dz0, -w dv0]
     coeffs = [jnp.zeros_like(w) if dw is None else dw]
     dz_last = jnp.zeros_like(z0)
     k = 1
-    for d in (dr, ds):
+    state_tangents = (jnp.zeros_like(z0) if dz0 is None else dz0, jnp.zeros_like(z0) if dv0 is None else dv0)
+    for d in (dr, ds) + (state_tangents if with_state else ()):
         if d is not None:
             coeffs.append(-w * d)
             dz_last = dz_last + carry[k] * d
