@@ -461,16 +461,21 @@ def test_config_starts_offset_and_prehistory_from_the_data():
 
 
 @pytest.mark.slow
-def test_shipped_config_calibrates_the_measured_actuator(tmp_path):
+def test_shipped_config_calibrates_the_measured_actuator(tmp_path, capsys):
     """The README's example: the shipped CONFIG on the shipped 150 V record, fitted on t < 7 s through `piezojax fit`
-    and scored on 7-10 s with the first 7 s as history through `piezojax predict` (measured 0.064 um)."""
+    and scored on 7-10 s with the first 7 s as history through `piezojax predict` (measured 0.064 um), which equals
+    predicting the rest after the first part as history."""
     data = ROOT / "experiments" / "data" / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv"
     config = ROOT / "experiments" / "configs" / "piezo_150v_pi.toml"
     fit_dir, pred_dir = tmp_path / "fit", tmp_path / "held_out"
     assert main(["fit", str(config), str(data), "--window", ":7", "--out", str(fit_dir), "--quiet",
                  "--no-figures"]) == 0  # converged (at a kink of the exact PI)
+    summary = json.loads((fit_dir / "result.json").read_text())
+    assert summary["cli"]["window"] == ":7" and summary["num_residuals"] == 35_000  # 5 kHz, t < 7 s
+    capsys.readouterr()
     assert main(["predict", str(fit_dir), str(data), "--score-from", "7", "--out", str(pred_dir)]) == 0
     scored = json.loads((pred_dir / "metrics.json").read_text())["metrics"]["hysteresis_v_150_1hz"]["displacement"]
+    assert f"RMSE {scored['rmse']:.6e}" in capsys.readouterr().out
     pred = np.genfromtxt(pred_dir / "hysteresis_v_150_1hz.csv", delimiter=",", names=True, skip_header=1)
     raw = np.genfromtxt(data, delimiter=",")
     held = raw[:, 1] >= 7.0

@@ -759,23 +759,3 @@ def test_cold_start_on_the_real_record_and_fallback(monkeypatch):
     with pytest.warns(fitting._config.StartWarning, match="pc.toml: the data-driven cold start failed"):
         model = pj.unwrap(cfg.build(fitting.Dataset([rec.slice(3.0, 4.0)])))
     assert np.all(np.isfinite(np.asarray(model.creep.stiffnesses)))
-
-
-def test_shipped_config_fits_a_window_and_predicts_the_rest(tmp_path, capsys):
-    """The README's real-data commands on a shortened copy of the measured record: fit the first part (--window),
-    predict the whole record and score the rest (--score-from), which equals predicting the rest after the first
-    part as history."""
-    cfg = Path(__file__).resolve().parents[1] / "experiments" / "configs" / "piezo_150v_pi.toml"
-    short = tmp_path / "piezo_6s.csv"  # rest until 3.26 s, then the drive
-    lines = (DATA / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv").read_text().splitlines()[:30_000]
-    short.write_text("\n".join(lines) + "\n")
-    fit = tmp_path / "fit"
-    rc = main(["fit", str(cfg), str(short), "--window", ":5", "--out", str(fit), "--quiet", "--no-figures",
-               "--max-steps", "20"])
-    assert rc in (0, 1)
-    summary = json.loads((fit / "result.json").read_text())
-    assert summary["cli"]["window"] == ":5" and summary["num_residuals"] == 25_000
-    assert main(["predict", str(fit), str(short), "--score-from", "5", "--out", str(tmp_path / "p")]) == 0
-    out = capsys.readouterr().out
-    rmse = json.loads((tmp_path / "p" / "metrics.json").read_text())["metrics"]["piezo_6s"]["displacement"]["rmse"]
-    assert f"RMSE {rmse:.6e}" in out and 0 < rmse < 1e-6  # metres: a fraction of a micrometre held out

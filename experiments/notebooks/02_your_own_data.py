@@ -153,9 +153,9 @@ plt.show()
 #
 # The command writes `result.json` (the same fields as `result.summary()`), `model.eqx`, `report.txt` and the
 # figures; `fitting.load_model` reads the model back. It runs the fit above and then one more step: plays that
-# ended dead (zero weight, or a threshold the drive never reaches) are re-seeded into the widest gaps and the fit is
-# repeated, keeping the better of the two. So its cost is at most the Python fit's. Here we run it on the same
-# window and compare.
+# ended dead (zero weight, a threshold the drive never reaches, or one on top of another) are re-seeded where the
+# residual needs them and the fit is repeated, keeping the better of the two. So its cost is at most the Python
+# fit's. Here we run it on the same window and compare.
 
 # %%
 with tempfile.TemporaryDirectory() as tmp:
