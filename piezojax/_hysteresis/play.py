@@ -242,9 +242,9 @@ def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
 # directions. One scan computes them; the output tangent is then a product of these (time, n) arrays with the
 # parameter tangents, outside the scan, and `jax.jacfwd` batches only that product instead of the scan body (the
 # autodiff JVP of the scan runs its body once per direction, ~30x the forward pass on XLA:CPU for a 16-play PI).
-# Tangents of the initial state (v0, z0) alone (a fitted prehistory or state before measured data) enter the same way:
-# P_k = ∂z_k/∂z_0 = a_k P_{k-1} (P_{-1} = 1) and D_k = ∂z_k/∂v_0 = a_k D_{k-1} + b_k ∂Δ_k/∂v_0 (only Δ_0 = v_0' - v_0
-# depends on v_0), two more primal rows. Tangents of the input signal need a recurrence of their own
+# Tangents of the initial state (v0, z0) alone (a fitted prehistory or state before measured data) take one more primal
+# row, P_k = ∂z_k/∂z_0 = a_k P_{k-1} (P_{-1} = 1), times a factor per threshold (`state_tangent`). Tangents of the input
+# signal need a recurrence of their own
 # (ż_k = a_k ż_{k-1} + b_k dΔ_k, one per direction); it runs only when they are not symbolic zeros, i.e. not for
 # measured data.
 
@@ -296,15 +296,15 @@ def step_coefficients(z: Array, delta: Array, r: Array, smoothing: Array, exact:
 
 def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_ab, with_play, with_state=False):
     """Scan the stop cell with the sensitivities of its state to `r` and `s` (and, `with_state`, to the initial
-    state: $P = \\partial z/\\partial z_0$ and $D = \\partial z/\\partial v_0$).
+    stop values: $P = \\partial z/\\partial z_0$, see `state_tangent`).
 
     `exact`: True, False, or None to choose with `lax.cond` on `smoothing == 0` (`exact_everywhere`; the exact
     operator has $S = 0$).
     Only primal values are computed here, so under `jax.jacfwd` nothing in this scan is batched.
 
-    **Returns:** `(carry, rows, ab)`: `carry` the final packed state `[z, R?, S?, P?, D?]`, shape `(k, *n)`; `rows`
-    per sample `[v - z if with_play else z, R?, S?, P?, D?]`, shape `(time, k, *n)`; `ab` the coefficients `[a, b]`
-    per sample, shape `(time, 2, *n)`, or None.
+    **Returns:** `(carry, rows, ab)`: `carry` the final packed state `[z, R?, S?, P?]`, shape `(k, *n)`; `rows` per
+    sample `[v - z if with_play else z, R?, S?, P?]`, shape `(time, k, *n)`; `ab` the coefficients `[a, b]` per
+    sample, shape `(time, 2, *n)`, or None.
     """
     if exact is None:
         return jax.lax.cond(
@@ -316,13 +316,9 @@ def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_a
         )
     if exact and use_parallel_scan(signal.shape[0]):
         return _sensitivity_parallel(r, smoothing, v0, z0, signal, with_r, with_s, with_ab, with_play, with_state)
-    zeros = jnp.zeros_like(z0)
-    init = [z0] + [zeros] * (int(with_r) + int(with_s)) + ([jnp.ones_like(z0), zeros] if with_state else [])
-    # ∂Δ_k/∂v_0: -1 at the first sample (Δ_0 = v_0' - v_0), 0 after
-    first = jnp.zeros(signal.shape, signal.dtype).at[0].set(-1.0)
+    init = [z0] + [jnp.zeros_like(z0)] * (int(with_r) + int(with_s)) + ([jnp.ones_like(z0)] if with_state else [])
 
-    def body(carry, x):
-        v, dv0_delta = x
+    def body(carry, v):
         v_prev, packed = carry
         z, a, b, c, e = step_coefficients(packed[0], v - v_prev, r, smoothing, exact)
         new = [z]
@@ -331,14 +327,26 @@ def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_a
         if with_s:
             new.append(a * packed[1 + int(with_r)] + (jnp.zeros_like(z) if e is None else e))
         if with_state:
-            new.append(a * packed[-2])
-            new.append(a * packed[-1] + b * dv0_delta)
+            new.append(a * packed[-1])
         rows = jnp.stack([v - z] + new[1:]) if with_play else jnp.stack(new)
         out = (rows, jnp.stack([a, b])) if with_ab else (rows, None)
         return (v, jnp.stack(new)), out
 
-    (_, carry), (rows, ab) = jax.lax.scan(body, (v0, jnp.stack(init)), (signal, first))
+    (_, carry), (rows, ab) = jax.lax.scan(body, (v0, jnp.stack(init)), signal)
     return carry, rows, ab
+
+
+def state_tangent(r, smoothing, v0, z0, signal, exact, dv0, dz0):
+    r"""The initial-state tangent as one per-threshold factor of $P_k = \partial z_k/\partial z_0$:
+    $\dot z_k = P_k (\dot z_0 - (b_0/a_0)\,\dot v_0)$, since $\partial z_k/\partial v_0 = -b_0 \prod_{j=1}^k a_j$
+    (only the first increment $\Delta_0 = v_0' - v_0$ reads $v_0$). Where $a_0 = 0$ the first step clamped the
+    stop, $b_0 = 0$ too (every branch of `step_coefficients`) and the factor is 0."""
+    _, a0, b0, _, _ = step_coefficients(z0, signal[0] - v0, r, smoothing, exact is True)
+    d = jnp.zeros_like(z0) if dz0 is None else dz0
+    if dv0 is None:
+        return d
+    ratio = jnp.where(a0 != 0, b0 / jnp.where(a0 != 0, a0, 1.0), 0.0)
+    return d - ratio * dv0
 
 
 def _expand(signal, z):
@@ -361,7 +369,7 @@ def stop_values_parallel(r, v0, z0, signal):
 def _sensitivity_parallel(r, smoothing, v0, z0, signal, with_r, with_s, with_ab, with_play, with_state=False):
     """`sensitivity_scan` of the exact operator in parallel in time: the stop values by `stop_values_parallel`,
     then each sample's tangent coefficients (`step_coefficients`, elementwise) and $R_k = a_k R_{k-1} + c_k$ (and
-    $P$, $D$) by `affine_scan` ($S = 0$ for the exact operator)."""
+    $P$) by `affine_scan` ($S = 0$ for the exact operator)."""
     z = stop_values_parallel(r, v0, z0, signal)
     z_prev = jnp.concatenate([jnp.broadcast_to(z0, z.shape[1:])[None], z[:-1]])
     v = _expand(signal, z)
@@ -374,7 +382,6 @@ def _sensitivity_parallel(r, smoothing, v0, z0, signal, with_r, with_s, with_ab,
         new.append(jnp.zeros_like(z))
     if with_state:
         new.append(affine_scan(a, jnp.zeros_like(z), jnp.ones_like(z[0])))
-        new.append(affine_scan(a, jnp.zeros_like(z).at[0].set(-b[0])))
     rows = jnp.stack([v - z] + new[1:], axis=1) if with_play else jnp.stack(new, axis=1)
     carry = jnp.stack([x[-1] for x in new])
     return carry, rows, (jnp.stack([a, b], axis=1) if with_ab else None)
@@ -443,7 +450,7 @@ def _stop_scan_jvp(exact, primals, tangents):
     r, smoothing, v0, z0, signal = primals
     dr, ds, dv0, dz0, dv = (_tangent_or_none(t) for t in tangents)
     ds = None if exact is True else ds
-    # initial-state tangents alone: the rows P, D (no per-direction recurrence); with input tangents: their own scan
+    # initial-state tangents alone: the row P (no per-direction recurrence); with input tangents: their own scan
     with_state = dv is None and not (dv0 is None and dz0 is None)
     with_inputs = dv is not None
     _, rows, ab = sensitivity_scan(
@@ -458,10 +465,7 @@ def _stop_scan_jvp(exact, primals, tangents):
             dz = dz + rows[:, k] * d
             k += 1
     if with_state:
-        if dz0 is not None:
-            dz = dz + rows[:, k] * dz0
-        if dv0 is not None:
-            dz = dz + rows[:, k + 1] * dv0
+        dz = dz + rows[:, k] * state_tangent(r, smoothing, v0, z0, signal, exact, dv0, dz0)
     if with_inputs:
         dz = dz + input_tangent_scan(ab, dz0, dv0, dv, signal.shape, signal.dtype)[1]
     return z, dz

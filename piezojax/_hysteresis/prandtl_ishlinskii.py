@@ -30,6 +30,7 @@ from .play import (
     input_tangent_scan,
     scan_exact_or_smooth,
     sensitivity_scan,
+    state_tangent,
     stop_update,
     stop_values_parallel,
 )
@@ -85,8 +86,8 @@ def _pi_scan_jvp(exact, primals, tangents):
     w0, w, r, smoothing, v0, z0, signal = primals
     dw0, dw, dr, ds, dv0, dz0, dv = (_tangent_or_none(t) for t in tangents)
     ds = None if exact is True else ds
-    # initial-state tangents alone (a fitted prehistory before measured data): the rows P = dz/dz0 and D = dz/dv0 of
-    # the one scan, in the product below; with input tangents, their own recurrence (one per direction)
+    # initial-state tangents alone (a fitted prehistory before measured data): the row P = dz/dz0 of the one scan,
+    # in the product below (`state_tangent`); with input tangents, their own recurrence (one per direction)
     with_state = dv is None and not (dv0 is None and dz0 is None)
     with_inputs = dv is not None
     carry, rows, ab = sensitivity_scan(
@@ -95,13 +96,12 @@ def _pi_scan_jvp(exact, primals, tangents):
     )
     length = signal.shape[0]
     y = w0 * signal + rows[:, 0] @ w
-    # one matrix product for every parameter direction: rows [play, R, S, P, D] against
-    # [dw, -w dr, -w ds, -w dz0, -w dv0]
+    # one matrix product for every parameter direction: rows [play, R, S, P] against [dw, -w dr, -w ds, -w dz_s]
     coeffs = [jnp.zeros_like(w) if dw is None else dw]
     dz_last = jnp.zeros_like(z0)
     k = 1
-    state_tangents = (jnp.zeros_like(z0) if dz0 is None else dz0, jnp.zeros_like(z0) if dv0 is None else dv0)
-    for d in (dr, ds) + (state_tangents if with_state else ()):
+    dz_s = state_tangent(r, smoothing, v0, z0, signal, exact, dv0, dz0) if with_state else None
+    for d in (dr, ds, dz_s):
         if d is not None:
             coeffs.append(-w * d)
             dz_last = dz_last + carry[k] * d
