@@ -7,7 +7,7 @@
   built-in predictors.
 - Solver: `fit` / `solve` (optimistix's Levenberg–Marquardt, or `method="trust_region"`: scipy's TRF algorithm, in
   normal-equation form: $J^\top J$ and $J^\top r$ by forward mode at each accepted point, a chunk of experiments at
-  a time), multi-start under `vmap`, smoothing continuation, failure reasons instead of NaN. The solvers as
+  a time), multi-start in lockstep, smoothing continuation, failure reasons instead of NaN. The solvers as
   components (`AbstractNormalSolver` with `init`/`step`/`terminate`; `LevenbergMarquardt`, `TrustRegion`), the
   outcomes `RESULTS`, progress meters (`AbstractProgressMeter`, `TextProgressMeter`, `NoProgressMeter`),
   `FitError` (`throw=True`) and `PrecisionWarning` (a fit in single precision).

@@ -623,11 +623,14 @@ def _advance(book, cost, take, ok, terminate, ftol, window, max_rejections):
 
 
 def _linearise_starts(core: ProblemCore, y, which: np.ndarray, lin: Linearisation | None):
-    """`linearise` at the starts `which` (a boolean mask over the rows of `y`); the other rows keep `lin`'s values
-    (with `finite` True). On XLA:CPU one start at a time, through the single-start program: measured faster than
-    vmapping the starts (the 150 V record's 29-parameter actuator, 35000 samples: 48 ms for one start alone,
-    156 ms for two vmapped, 391 ms for four), a finished start costs nothing, and a multi-start fit compiles the
-    same linearisation as a single start. Elsewhere (accelerators) batched over every start."""
+    """`linearise` at the starts `which` (a boolean mask over the rows of `y`) as `(r, cost, g, h, finite)`; `g`
+    and `h` of the other rows are `lin`'s and their `finite` is True (their `r` and `cost` are not to be used: the
+    caller keeps its own). `lin` None: the first linearisation, of every start (`which` all True).
+
+    On XLA:CPU one start at a time, through the single-start program: measured faster than vmapping the starts
+    (the 150 V record's 29-parameter actuator, 35000 samples: 48 ms for one start alone, 156 ms for two vmapped,
+    391 ms for four), a finished start's linearisation costs nothing, and a multi-start fit compiles the same
+    linearisation as a single start. Elsewhere (accelerators) batched over every start."""
     n = y.shape[0]
     if n == 1 or jax.default_backend() != "cpu":
         r, cost, g, h, finite = linearise(core, y)
@@ -649,8 +652,9 @@ def _linearise_starts(core: ProblemCore, y, which: np.ndarray, lin: Linearisatio
 def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: int,
             meter: AbstractProgressMeter, label: str = "", max_rejections: int = 40, window: int = 5) -> list[Run]:
     r"""Run `solver` from every start in `u0` (shape `(starts, p)`) at once, stepped from Python (progress meter,
-    Ctrl-C): the starts run in lockstep under `vmap`, a finished start is frozen, and each has its own state,
-    history and verdict.
+    Ctrl-C): the starts run in lockstep (their trials under `vmap`; their linearisations one at a time on
+    XLA:CPU, see `_linearise_starts`), a finished start is frozen, and each has its own state, history and
+    verdict.
 
     Besides the solver's own test (`terminate`), a start ends by the loop's tests (`advance`): converged when its
     accepted steps no longer lower the cost (mean relative decrease over the last `window` below the solver's

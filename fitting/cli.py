@@ -551,8 +551,9 @@ def _check_fit_data(dataset, targets) -> None:
         raise _error("column 'v_in' is zero in every data file: no model can be identified from no excitation")
 
 
-# the data-driven starts are fitted together (under vmap) only while they need no more than this (measured: two starts
-# on one 1e6-sample record peaked at 2.3 GB resident and took 3.3 times as long as one, which peaked at 1.55 GB)
+# the data-driven starts are fitted together only while they need no more than this (measured when their
+# linearisations were vmapped together, before XLA:CPU formed them one start at a time: two starts on one
+# 1e6-sample record peaked at 2.3 GB resident and took 3.3 times as long as one, which peaked at 1.55 GB)
 MULTI_START_MEMORY = 3 * 2**29
 # at most this many re-seeded fits after the first (each kept only when it lowers the cost), another only after one
 # that lowered the cost by more than this fraction

@@ -178,10 +178,10 @@ def test_output_polynomial_and_smoothing_continuation():
     v = jnp.asarray(V)
     h = np.asarray(op.hysteresis(v))
     np.testing.assert_allclose(op(v), h + 10.0 * 0.05 * (h / 10.0) ** 2, atol=1e-12)
-    # three coefficients (the map is evaluated by Horner's rule): each power with its own coefficient
-    cubic = pj.OutputPolynomial(op.hysteresis, [0.05, -0.02, 0.01], 10.0)
+    # three coefficients (powers 2 to 4): each power with its own coefficient
+    quartic = pj.OutputPolynomial(op.hysteresis, [0.05, -0.02, 0.01], 10.0)
     x = h / 10.0
-    np.testing.assert_allclose(cubic(v), h + 10.0 * (0.05 * x**2 - 0.02 * x**3 + 0.01 * x**4), rtol=1e-13,
+    np.testing.assert_allclose(quartic(v), h + 10.0 * (0.05 * x**2 - 0.02 * x**3 + 0.01 * x**4), rtol=1e-13,
                                atol=1e-12)
     # the continuation reaches the wrapped operator's smoothing
     assert float(fitting.set_smoothing(op, 0.0).hysteresis.smoothing) == 0.0

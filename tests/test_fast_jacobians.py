@@ -96,13 +96,24 @@ def test_pi_jacobian_equals_autodiff(jac, smoothing, kind):
 @pytest.mark.parametrize("mode", ["never", "always"])
 def test_initial_state_tangents_on_a_measured_signal_equal_autodiff(mode):
     # a fitted prehistory before measured data: tangents of (v0, z0) and the parameters, none of the signal (a
-    # symbolic zero), which the fast rule carries as two more rows of its one scan (P = dz/dz0, D = dz/dv0) instead
-    # of a recurrence per direction; sequential and parallel in time, exact and smooth, PI and play operators
+    # symbolic zero), which the fast rule carries as one more row of its one scan (P = dz/dz0, times a factor per
+    # threshold) instead of a recurrence per direction; sequential and parallel in time, exact and smooth (traced and
+    # concrete smoothing), v0 and z0 alone and together, PI and play operators, forward and reverse mode
     from piezojax._config import parallel_scans
 
     no_signal = (0, 1, 2, 3, 5, 6)  # w0, weights, thresholds, smoothing, v0, z0
     with parallel_scans(mode):
         fast, ref = (jax.jit(jax.jacfwd(pi_model(run), no_signal)) for run in ("_run", "_run_autodiff"))
+
+        def concrete(smoothing, argnums):  # the exact/smooth choice made in Python (no lax.cond)
+            return jax.jit(jax.jacfwd(lambda *a: pi_model_concrete(smoothing)(*a[:3], *a[4:]), argnums))
+
+        def grads(run):
+            def loss(v0, z0, w0, w, r, s, v):
+                y, z = pi_model(run)(w0, w, r, s, v, v0, z0)
+                return jnp.sum(y * jnp.cos(jnp.arange(y.shape[0], dtype=y.dtype))) + jnp.sum(z**2)
+
+            return jax.jit(jax.grad(loss, (0, 1)))
 
         def play(run):
             def f(r, s, v, v0, z0):
@@ -113,6 +124,7 @@ def test_initial_state_tangents_on_a_measured_signal_equal_autodiff(mode):
             return jax.jit(jax.jacfwd(f, (0, 1, 3, 4)))
 
         play_fast, play_ref = play("_run"), play("_run_autodiff")
+        grad_fast, grad_ref = grads("_run"), grads("_run_autodiff")
         for seed, smoothing in ((0, 0.0), (1, 0.0), (2, 0.3), (3, 0.05)):
             rng = np.random.default_rng(seed)
             args = pi_args(rng, smoothing, signal=tie_signal(rng) if seed % 2 == 0 else smooth_signal(rng))
@@ -122,6 +134,11 @@ def test_initial_state_tangents_on_a_measured_signal_equal_autodiff(mode):
             assert_trees_close(got, want, atol=1e-10)
             # non-trivial: the output depends on the initial stop values and input
             assert np.abs(np.asarray(got[0][5])).max() > 0.1 and np.abs(np.asarray(got[0][4])).max() > 0.1
+            for argnums, cols in (((5,), (4,)), ((6,), (5,)), ((1, 5, 6), (1, 4, 5))):  # v0 alone, z0 alone, both
+                one = concrete(smoothing, argnums)(*args)
+                assert_trees_close(one, tuple(tuple(w[c] for c in cols) for w in want), atol=1e-10)
+            w0, w, r, s_, v, v0, z0 = args
+            assert_trees_close(grad_fast(v0, z0, w0, w, r, s_, v), grad_ref(v0, z0, w0, w, r, s_, v), atol=1e-10)
             a = (args[2], args[3], args[4], args[5], args[6])
             assert_trees_close(play_fast(*a), play_ref(*a), atol=1e-10)
 

@@ -243,10 +243,9 @@ def run_exact_or_smooth(op: AbstractHysteresis, state, signal):
 # parameter tangents, outside the scan, and `jax.jacfwd` batches only that product instead of the scan body (the
 # autodiff JVP of the scan runs its body once per direction, ~30x the forward pass on XLA:CPU for a 16-play PI).
 # Tangents of the initial state (v0, z0) alone (a fitted prehistory or state before measured data) take one more primal
-# row, P_k = ∂z_k/∂z_0 = a_k P_{k-1} (P_{-1} = 1), times a factor per threshold (`state_tangent`). Tangents of the input
-# signal need a recurrence of their own
-# (ż_k = a_k ż_{k-1} + b_k dΔ_k, one per direction); it runs only when they are not symbolic zeros, i.e. not for
-# measured data.
+# row, P_k = ∂z_k/∂z_init = a_k P_{k-1} (P_{-1} = 1), times a factor per threshold (`state_tangent`). Tangents of the
+# input signal need a recurrence of their own (ż_k = a_k ż_{k-1} + b_k dΔ_k, one per direction); it runs only when
+# they are not symbolic zeros, i.e. not for measured data.
 
 _SymbolicZero = jax.custom_derivatives.SymbolicZero
 
@@ -337,10 +336,13 @@ def sensitivity_scan(r, smoothing, v0, z0, signal, exact, with_r, with_s, with_a
 
 
 def state_tangent(r, smoothing, v0, z0, signal, exact, dv0, dz0):
-    r"""The initial-state tangent as one per-threshold factor of $P_k = \partial z_k/\partial z_0$:
-    $\dot z_k = P_k (\dot z_0 - (b_0/a_0)\,\dot v_0)$, since $\partial z_k/\partial v_0 = -b_0 \prod_{j=1}^k a_j$
-    (only the first increment $\Delta_0 = v_0' - v_0$ reads $v_0$). Where $a_0 = 0$ the first step clamped the
-    stop, $b_0 = 0$ too (every branch of `step_coefficients`) and the factor is 0."""
+    r"""The tangent of the state `(v0, z0)` before `signal` as one factor per threshold of the row
+    $P_k = \partial z_k/\partial z_{\mathrm{init}} = \prod_{j=0}^k a_j$ (`sensitivity_scan`, `with_state`):
+    $\dot z_k = P_k (\dot z_{\mathrm{init}} - (b_0/a_0)\,\dot v_{\mathrm{init}})$, since only the first sample's
+    increment $\Delta_0 = s_0 - v_{\mathrm{init}}$ reads $v_{\mathrm{init}}$, so that
+    $\partial z_k/\partial v_{\mathrm{init}} = -b_0 \prod_{j=1}^k a_j$ ($a_j$, $b_j$ the coefficients of
+    `step_coefficients` at sample $j$). Where $a_0 = 0$ the first step clamped the stop; then $b_0 = 0$ too (in
+    every branch of `step_coefficients`) and the factor is $\dot z_{\mathrm{init}}$ (times $P = 0$)."""
     _, a0, b0, _, _ = step_coefficients(z0, signal[0] - v0, r, smoothing, exact is True)
     d = jnp.zeros_like(z0) if dz0 is None else dz0
     if dv0 is None:

@@ -60,9 +60,11 @@ def pi_scan(
     hand-derived forward sensitivities of `play.sensitivity_scan`: with $R_{i,k} = \partial z_{i,k}/\partial r_i$ and
     $S_{i,k} = \partial z_{i,k}/\partial s$ (one scan, independent of the number of tangent directions),
     $\dot y_k = \dot w_0 v_k + \sum_i \dot w_i (v_k - z_{i,k}) - \sum_i w_i (R_{i,k}\dot r_i + S_{i,k}\dot s)
-    + (w_0 + \sum_i w_i)\dot v_k - \sum_i w_i \dot z^{v}_{i,k}$, where $\dot z^{v}$ (input and initial-state tangents)
-    has its own recurrence and is skipped when those tangents are symbolic zeros. The values equal autodiff through
-    the scan (same tie rules); the tangent is linear, so `jax.grad` works through it.
+    + (w_0 + \sum_i w_i)\dot v_k - \sum_i w_i \dot z^{v}_{i,k}$, where $\dot z^{v}$ (initial-state and input
+    tangents) is skipped when those tangents are symbolic zeros; with the input's a symbolic zero (measured data), it
+    is one more row of the same scan, $P_{i,k} = \partial z_{i,k}/\partial z_{i,0}$, times a factor per play
+    (`play.state_tangent`); with input tangents, a recurrence of its own per direction. The values equal autodiff
+    through the scan (same tie rules); the tangent is linear, so `jax.grad` works through it.
     """
 
     def run(exact):
@@ -117,8 +119,7 @@ def _pi_scan_jvp(exact, primals, tangents):
         dz_in_last, dz_in = input_tangent_scan(ab, dz0, dv0, dv, signal.shape, signal.dtype)
         dy = dy - dz_in @ w
         dz_last = dz_last + dz_in_last
-        if dv is not None:
-            dy = dy + (w0 + jnp.sum(w)) * dv
+        dy = dy + (w0 + jnp.sum(w)) * dv
     return (carry[0], y), (dz_last, dy)
 
 
