@@ -13,7 +13,7 @@ from jaxtyping import Array, Float
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError, refusal_mode
 from piezojax._config import parallel_scans, scan_mode
-from piezojax._dtypes import common_float_dtype
+from piezojax._dtypes import common_float_dtype, matmul
 
 from ._predict import ExperimentArrays, Predictor, default_predictor, predict
 
@@ -239,13 +239,13 @@ class ProblemCore(eqx.Module):
                 q = tangent_block(sum(int(masks[c].shape[-1]) for c in grp.targets), p, u.dtype.itemsize)
                 if q >= p:
                     r, jt = directions(eye)
-                    return r, jt @ r, jt @ jt.T
+                    return r, matmul(jt, r), matmul(jt, jt.T)
                 # blocks of q directions (zero directions pad the last: zero rows of J^T, cut from g and H)
                 nb = -(-p // q)
                 blocks = jnp.concatenate([eye, jnp.zeros((nb * q - p, p), u.dtype)]).reshape(nb, q, p)
                 r, jt = jax.lax.map(directions, blocks)
                 r, jt = r[0], jt.reshape(nb * q, -1)
-                return r, (jt @ r)[:p], (jt @ jt.T)[:p, :p]
+                return r, matmul(jt, r)[:p], matmul(jt, jt.T)[:p, :p]
 
             xs = (d.t, d.v_in, d.channels, grp.targets, grp.masks)
             b, bs = len(grp.index), self.chunk_size(grp, p)

@@ -29,6 +29,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from piezojax._checks import PiezojaxError, PiezojaxValueError
+from piezojax._dtypes import matmul
 
 from ._problem import ProblemCore, linearise, model_error, over_starts
 
@@ -341,7 +342,7 @@ class TrustRegionDescent(eqx.Module):
         s = jnp.sqrt(lam)
         full_rank = s[-1] > jnp.finfo(lam.dtype).eps * m * s[0]
         lam_safe = jnp.where(lam > 0, lam, 1.0)
-        p_gn = -vecs @ (suf / lam_safe)
+        p_gn = -matmul(vecs, suf / lam_safe)
         take_gn = full_rank & (jnp.linalg.norm(p_gn) <= delta)
 
         def phi_and_derivative(a):
@@ -366,7 +367,7 @@ class TrustRegionDescent(eqx.Module):
             return keep(a_new, a), keep(lo_new, lo), keep(hi_new, hi), done | (jnp.abs(phi) < self.rtol * delta)
 
         alpha, *_ = jax.lax.fori_loop(0, self.max_iter, body, (alpha, lower, upper, jnp.array(False)))
-        p = -vecs @ (suf / (lam + alpha))
+        p = -matmul(vecs, suf / (lam + alpha))
         p = p * (delta / jnp.linalg.norm(p))
         return jnp.where(take_gn, p_gn, p), jnp.where(take_gn, 0.0, alpha)
 
@@ -377,8 +378,8 @@ class TrustRegionDescent(eqx.Module):
         gh = lin.g * d
         lam, vecs = jnp.linalg.eigh(hh)
         lam, vecs = jnp.clip(lam[::-1], 0.0, None), vecs[:, ::-1]
-        step_h, alpha = self.subproblem(lam, vecs, vecs.T @ gh, radius, alpha, m)
-        predicted = -(0.5 * step_h @ hh @ step_h + gh @ step_h)
+        step_h, alpha = self.subproblem(lam, vecs, matmul(vecs.T, gh), radius, alpha, m)
+        predicted = -(0.5 * matmul(step_h, matmul(hh, step_h)) + matmul(gh, step_h))
         return step_h, alpha, predicted, d
 
 

@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ._dtypes import matmul
+
 
 def affine_scan(a: Array, b: Array, x0: Array | None = None) -> Array:
     """$x_k = a_k x_{k-1} + b_k$ for every $k$ (axis 0), from $x_{-1} = $ `x0` (default 0); `a` broadcasts
@@ -48,10 +50,10 @@ def matrix_affine_scan(delta: Array, b: Array, x0: Array) -> tuple[Array, Array]
     def combine(first, second):
         d1, b1 = first
         d2, b2 = second
-        return d1 + d2 + d2 @ d1, b1 + b2 + jnp.einsum("...ij,...j->...i", d2, b1)
+        return d1 + d2 + matmul(d2, d1), b1 + b2 + matmul(d2, b1[..., None])[..., 0]
 
     dprod, acc = jax.lax.associative_scan(combine, (ds, b))
-    after = x0 + (jnp.einsum("kij,j->ki", dprod, x0) + acc)  # xi_1 ... xi_time
+    after = x0 + (matmul(dprod, x0) + acc)  # xi_1 ... xi_time
     return jnp.concatenate([x0[None], after[:-1]]), after[-1]
 
 

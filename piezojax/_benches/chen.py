@@ -9,6 +9,7 @@ from .._checks import PiezojaxValueError
 from .._circuits.smart_stack import SmartStackCircuit
 from .._control.base import AbstractPlant
 from .._creep.lags import zoh_lag_coefficients
+from .._dtypes import matmul
 from .._hysteresis.bouc_wen import BoucWen
 from .._linear.transfer_function import TransferFunction
 from .._observers.sensor_layer import SensorLayerObserver
@@ -286,8 +287,8 @@ class ChenStagePlant(AbstractPlant):
             bw, h = b.hysteresis.step(bw, v_p)
             creep = a_c * creep + b_c * h
             x = b.stroke * (h + b.creep_fraction * creep)
-            force = k_ser * x + s.k_e * (Cd @ xi + Dd * x)
-            xi = Ad @ xi + Bd * x
+            force = k_ser * x + s.k_e * (matmul(Cd, xi) + Dd * x)
+            xi = matmul(Ad, xi) + Bd * x
             signal = gain * force
             amp = a_a * amp + b_a * signal
             return (v_p, bw, creep, xi, amp, x, signal - amp + s.crosstalk * v_a, force), None

@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from .._checks import PiezojaxValueError, check_value
 from .._creep.lags import lag_sum
+from .._dtypes import matmul
 from .._hysteresis.preisach import Preisach
 from .._linear.state_space import StateSpace
 from .common import AbstractBench, Record, bench_param, bench_signal, lag, measure, replace_fields
@@ -204,8 +205,8 @@ class QuantBench(AbstractBench):
         damp = jnp.diag(c_i) + self.load_damping * ones
         minv = jnp.linalg.inv(mass)
         zero, eye = jnp.zeros((n, n), w.dtype), jnp.eye(n, dtype=w.dtype)
-        a = jnp.block([[zero, eye], [-minv @ stiff, -minv @ damp]])
-        b = jnp.concatenate([jnp.zeros(n, w.dtype), minv @ jnp.ones(n, w.dtype)])[:, None]
+        a = jnp.block([[zero, eye], [-matmul(minv, stiff), -matmul(minv, damp)]])
+        b = jnp.concatenate([jnp.zeros(n, w.dtype), matmul(minv, jnp.ones(n, w.dtype))])[:, None]
         c = jnp.concatenate([jnp.ones(n, w.dtype), jnp.zeros(n, w.dtype)])[None, :]
         return StateSpace(a, b, c, jnp.zeros((1, 1), w.dtype))
 

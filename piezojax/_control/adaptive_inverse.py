@@ -6,7 +6,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import PiezojaxValueError, as_parameter_array, check_signal, check_value
-from .._dtypes import module_float_dtype
+from .._dtypes import matmul, module_float_dtype
 from .._parametrisation import setting
 from .base import AbstractController
 from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
@@ -200,6 +200,6 @@ class AdaptiveInverseController(AbstractController):
         x = jnp.concatenate([lagged(yn[:n], range(self.measurement_lags)),
                              lagged(yn[shift:], range(self.reference_lags))], axis=1)
         W, c = self.hidden_weights.astype(dtype), self.hidden_bias.astype(dtype)
-        hidden = logsig(x @ W.T + c)
+        hidden = logsig(matmul(x, W.T) + c)
         layer = output_layer_least_squares(hidden, (u[:n] - self.offset) / self.command_scale, ridge)
         return eqx.tree_at(lambda m: (m.output_weights, m.output_bias), self, layer)

@@ -7,7 +7,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._checks import PiezojaxValueError, as_parameter_array, check_signal, check_value
 from .._custom_types import AbstractCell, Signal, SignalLike
-from .._dtypes import cast_module, module_float_dtype
+from .._dtypes import cast_module, matmul, module_float_dtype
 from .._parametrisation import setting
 from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
@@ -124,7 +124,7 @@ class NarxNetwork(AbstractCell):
         **Returns:** the model with the fitted output layer.
         """
         m, (x, y) = self._prepare(x, y)
-        hidden = logsig(m.regressors(x, y) @ m.hidden_weights.T + m.hidden_bias)
+        hidden = logsig(matmul(m.regressors(x, y), m.hidden_weights.T) + m.hidden_bias)
         layer = output_layer_least_squares(hidden, (y - m.output_offset) / m.output_scale, ridge)
         return eqx.tree_at(lambda n: (n.output_weights, n.output_bias), m, layer)
 

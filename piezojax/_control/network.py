@@ -5,6 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, PRNGKeyArray
 
 from .._checks import PiezojaxValueError
+from .._dtypes import matmul
 
 
 def logsig(z: Array) -> Array:
@@ -16,8 +17,8 @@ def forward(params: tuple[Array, Array, Array, Array], z: Array) -> tuple[Array,
     r"""Hidden outputs $O_j = g(\sum_i \omega_{ij} z_i + c_j)$ (eq. 15) and the linear output
     $\sum_j \omega_j O_j + b$ (eq. 16), for `params = (W (P, n), c (P,), w (P,), b ())`."""
     W, c, w, b = params
-    hidden = logsig(W @ z + c)
-    return hidden, jnp.dot(w, hidden) + b
+    hidden = logsig(matmul(W, z) + c)
+    return hidden, matmul(w, hidden) + b
 
 
 def random_hidden_layer(key: PRNGKeyArray, hidden: int, inputs: int, dtype) -> tuple[Array, Array]:
@@ -47,6 +48,6 @@ def output_layer_least_squares(hidden: Array, target: Array, ridge: float) -> tu
     outputs `hidden` (time, P) and `target` (time,), with $\lambda$ = `ridge` × the mean diagonal of the normal
     matrix."""
     A = jnp.concatenate([hidden, jnp.ones((hidden.shape[0], 1), hidden.dtype)], axis=1)
-    lam = ridge * jnp.trace(A.T @ A) / A.shape[1]
-    sol = jnp.linalg.solve(A.T @ A + lam * jnp.eye(A.shape[1], dtype=A.dtype), A.T @ target)
+    lam = ridge * jnp.trace(matmul(A.T, A)) / A.shape[1]
+    sol = jnp.linalg.solve(matmul(A.T, A) + lam * jnp.eye(A.shape[1], dtype=A.dtype), matmul(A.T, target))
     return sol[:-1], sol[-1]

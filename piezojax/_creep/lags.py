@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError
 from .._config import use_parallel_scan
-from .._dtypes import common_float_dtype
+from .._dtypes import common_float_dtype, matmul
 from .._hysteresis.play import _tangent_or_none
 from .._scans import affine_scan
 
@@ -68,7 +68,7 @@ def lag_scan(a: Array, b0: Array, b1: Array, c: Array, u: Array, u_next: Array) 
     """
 
     if use_parallel_scan(u.shape[0]):
-        return _states_parallel(a, b0[None] * u[:, None] + b1[None] * u_next[:, None]) @ c
+        return matmul(_states_parallel(a, b0[None] * u[:, None] + b1[None] * u_next[:, None]), c)
 
     def step(x, uu):
         return a * x + b0 * uu[0] + b1 * uu[1], jnp.sum(c * x)
@@ -104,12 +104,12 @@ def _lag_scan_jvp(primals, tangents):
     else:
         _, states = jax.lax.scan(step, (zero, zero, zero, zero), jnp.stack([u, u_next], axis=1))
     x = states[:, 0]  # (time, lags)
-    y = x @ c
+    y = matmul(x, c)
     # the parameter directions: one product of the (time, 4 * lags) sensitivities with the stacked tangents
     coeffs = [jnp.zeros_like(c) if dc is None else dc]
     for d in (da, db0, db1):
         coeffs.append(jnp.zeros_like(c) if d is None else c * d)
-    dy = states.reshape(states.shape[0], -1) @ jnp.concatenate(coeffs)
+    dy = matmul(states.reshape(states.shape[0], -1), jnp.concatenate(coeffs))
     if du is not None or du_next is not None:
         du = jnp.zeros_like(u) if du is None else du
         du_next = jnp.zeros_like(u) if du_next is None else du_next
@@ -118,7 +118,7 @@ def _lag_scan_jvp(primals, tangents):
             return a * z + b0 * uu[0] + b1 * uu[1], jnp.sum(c * z)
 
         if use_parallel_scan(u.shape[0]):
-            dy = dy + _states_parallel(a, b0[None] * du[:, None] + b1[None] * du_next[:, None]) @ c
+            dy = dy + matmul(_states_parallel(a, b0[None] * du[:, None] + b1[None] * du_next[:, None]), c)
         else:
             dy = dy + jax.lax.scan(tangent_step, zero, jnp.stack([du, du_next], axis=1))[1]
     return y, dy

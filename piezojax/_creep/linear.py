@@ -5,6 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError
+from .._dtypes import matmul
 from .._linear.base import AbstractLinearSystem
 from .._linear.discretise import discretise_state_space
 from .._linear.stable import StableTransferFunction
@@ -74,7 +75,7 @@ class LinearCreep(AbstractCreep):
             positive = ti > 0
             safe = jnp.where(positive, ti, jnp.ones_like(ti))
             d = discretise_state_space(A, B, C, D, safe, "zoh")  # Bd = (∫_0^t e^{Aσ} dσ) B
-            return jnp.where(positive, D + jnp.dot(C, d.Bd), D)
+            return jnp.where(positive, D + matmul(C, d.Bd), D)
 
         flat = jax.vmap(one)(jnp.ravel(t))
         return flat.reshape(t.shape)

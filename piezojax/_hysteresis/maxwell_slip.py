@@ -6,7 +6,7 @@ from jaxtyping import Array, Float
 
 from .._checks import PiezojaxValueError, check_positive, check_same_shape, check_scalar, check_vector
 from .._custom_types import ScalarLike, VectorLike
-from .._dtypes import param_dtype
+from .._dtypes import matmul, param_dtype
 from .._parametrisation import setting
 from .base import AbstractHysteresis, root_finding_inverse
 from .play import check_smoothing, error_if_bad_smoothing, run_exact_or_smooth, stop_update
@@ -137,7 +137,7 @@ class MaxwellSlip(AbstractHysteresis):
     def _step(self, state, x, exact):
         x_prev, z = state
         z = stop_update(z, x - x_prev, self.thresholds, self.smoothing, exact)
-        return (x, z), jnp.dot(self.stiffness, z)
+        return (x, z), matmul(self.stiffness, z)
 
     def inverse(
         self, lower: ScalarLike | None = None, upper: ScalarLike | None = None, *, max_iterations: int = 100

@@ -18,7 +18,7 @@ from .._checks import (
 )
 from .._config import use_parallel_scan
 from .._custom_types import ScalarLike, VectorLike
-from .._dtypes import param_dtype
+from .._dtypes import matmul, param_dtype
 from .._parametrisation import setting
 from .base import AbstractHysteresis, root_finding_inverse
 from .play import (
@@ -70,12 +70,12 @@ def pi_scan(
     def run(exact):
         if exact and use_parallel_scan(signal.shape[0]):
             z = stop_values_parallel(r, v0, z0, signal)
-            return z[-1], w0 * signal + (signal[:, None] - z) @ weights
+            return z[-1], w0 * signal + matmul(signal[:, None] - z, weights)
 
         def body(carry, v):
             v_prev, z = carry
             z = stop_update(z, v - v_prev, r, smoothing, exact)
-            return (v, z), w0 * v + jnp.dot(weights, v - z)
+            return (v, z), w0 * v + matmul(weights, v - z)
 
         (_, z_last), y = jax.lax.scan(body, (v0, z0), signal)
         return z_last, y
@@ -97,7 +97,7 @@ def _pi_scan_jvp(exact, primals, tangents):
         with_state=with_state,
     )
     length = signal.shape[0]
-    y = w0 * signal + rows[:, 0] @ w
+    y = w0 * signal + matmul(rows[:, 0], w)
     # one matrix product for every parameter direction: rows [play, R, S, P] against [dw, -w dr, -w ds, -w dz_s]
     coeffs = [jnp.zeros_like(w) if dw is None else dw]
     dz_last = jnp.zeros_like(z0)
@@ -114,10 +114,10 @@ def _pi_scan_jvp(exact, primals, tangents):
         # product as (time, direction), and adding them costs a transposition larger than the product itself
         columns = jnp.concatenate([signal[:, None], columns], axis=1)
         coeffs.insert(0, dw0[None])
-    dy = columns @ jnp.concatenate(coeffs)
+    dy = matmul(columns, jnp.concatenate(coeffs))
     if with_inputs:
         dz_in_last, dz_in = input_tangent_scan(ab, dz0, dv0, dv, signal.shape, signal.dtype)
-        dy = dy - dz_in @ w
+        dy = dy - matmul(dz_in, w)
         dz_last = dz_last + dz_in_last
         dy = dy + (w0 + jnp.sum(w)) * dv
     return (carry[0], y), (dz_last, dy)
@@ -197,7 +197,7 @@ class PrandtlIshlinskii(_AbstractStopCell):
 
     def _output(self, v, z):
         # state and update are the shared stop cell's; the plays are v - z
-        return self.w0 * v + jnp.dot(self.weights, v - z)
+        return self.w0 * v + matmul(self.weights, v - z)
 
     def _run(self, state, signal):
         # One scan with hand-derived forward sensitivities (`pi_scan`): `jax.jacfwd` batches a matrix product, not

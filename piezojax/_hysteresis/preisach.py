@@ -16,7 +16,7 @@ from .._checks import (
     concrete_or_none,
 )
 from .._custom_types import ScalarLike, VectorLike
-from .._dtypes import param_dtype
+from .._dtypes import matmul, param_dtype
 from .._parametrisation import setting
 from .base import AbstractHysteresis, AbstractHysteresisCell, root_finding_inverse
 from .play import (
@@ -345,7 +345,7 @@ class GaussianPreisach(_AbstractStopCell):
         sig = self.sigma_s
         c = jnp.sqrt(jnp.asarray(0.5, v.dtype))
         phi = sig * jnp.sqrt(jnp.pi / 2).astype(v.dtype) * jax.lax.erf(c * (v[..., None] - z) / sig)
-        return self.w0 * v + phi @ self.weights
+        return self.w0 * v + matmul(phi, self.weights)
 
     def _run(self, state, signal):
         # The plays run in a tight loop over blocks of samples and the shape function is applied to each block at

@@ -19,7 +19,7 @@ from .._checks import (
     concrete_or_none,
 )
 from .._custom_types import Signal, SignalLike
-from .._dtypes import cast_module, module_float_dtype
+from .._dtypes import cast_module, matmul, module_float_dtype
 from .discretise import DiscreteStateSpace, check_hold, discretise_state_space
 
 
@@ -55,7 +55,7 @@ class AbstractLinearSystem(eqx.Module):
         A, B, C, D = self.state_space()
         if A.shape[0] == 0:
             return D
-        return D - jnp.dot(C, jnp.linalg.solve(A, B))
+        return D - matmul(C, jnp.linalg.solve(A, B))
 
     def equilibrium_state(self, u0: ArrayLike) -> Float[Array, " n"]:
         r"""The state of `state_space()` at rest under the constant input `u0`: $x = -A^{-1} B u_0$.
@@ -78,7 +78,7 @@ class AbstractLinearSystem(eqx.Module):
 
         def one(wi):
             M = jax.lax.complex(jnp.zeros_like(wi), wi) * jnp.eye(n, dtype=ctype) - A.astype(ctype)
-            return jnp.dot(C.astype(ctype), jnp.linalg.solve(M, B.astype(ctype))) + D.astype(ctype)
+            return matmul(C.astype(ctype), jnp.linalg.solve(M, B.astype(ctype))) + D.astype(ctype)
 
         return jax.vmap(one)(jnp.atleast_1d(w)).reshape(w.shape)
 
@@ -212,11 +212,11 @@ class AbstractLinearSystem(eqx.Module):
             for i in range(r + 1):
                 p_a = p_a + math.comb(r, i) * wf ** (r - i) * power
                 if i == r - 1:
-                    g = C @ power @ B
-                power = power @ A
+                    g = matmul(matmul(C, power), B)
+                power = matmul(power, A)
             a0 = wf**r
         g = check_value(g, lambda x: x != 0, f"`relative_degree` {r} does not match the system (C A^(r-1) B = 0)")
-        c_p = C @ p_a
+        c_p = matmul(C, p_a)
         inv = StateSpace(A - jnp.outer(B, c_p) / g, B * a0 / g, -c_p / g, a0 / g)
         a_i = concrete_or_none(inv.A)
         if a_i is not None and n and np.max(np.linalg.eigvals(np.asarray(a_i, np.float64)).real) >= 0:

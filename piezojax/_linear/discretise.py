@@ -18,7 +18,7 @@ from .._checks import (
 )
 from .._config import use_parallel_scan
 from .._custom_types import Signal, SignalLike
-from .._dtypes import common_float_dtype
+from .._dtypes import common_float_dtype, matmul
 from .._scans import matrix_affine_scan
 
 _HOLDS = ("zoh", "foh")
@@ -40,7 +40,7 @@ def expm(M: Float[Array, "k k"]) -> Float[Array, "k k"]:
     polynomial (Horner, 18 small matmuls) compiles in a fraction of that, needs no solve, and keeps the blocks of
     integrals of $e^{A\tau}$ accurate to relative rounding.
     """
-    dot = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
+    dot = matmul
     dtype = M.dtype
     norm = jnp.max(jnp.sum(jnp.abs(M), axis=0))
     # The number of squarings is piecewise constant in M: no gradient flows through it.
@@ -211,7 +211,7 @@ def _scan_parallel(delta, Bd, Cd, Dd, state, u):
     + B_d\dot u_k$ is the same recurrence with another input, so every tangent direction shares the primal's
     transition (under `jax.jacfwd` only the inputs are batched, not $A_d$'s tangents at every sample)."""
     states, last = matrix_affine_scan(delta, Bd[None] * u[:, None], state)
-    return last, states @ Cd + Dd * u
+    return last, matmul(states, Cd) + Dd * u
 
 
 @functools.partial(_scan_parallel.defjvp, symbolic_zeros=True)
@@ -220,18 +220,18 @@ def _scan_parallel_jvp(primals, tangents):
     d_delta, dBd, dCd, dDd, dstate, du = (None if type(t) is jax.custom_derivatives.SymbolicZero else t
                                           for t in tangents)
     states, last = matrix_affine_scan(delta, Bd[None] * u[:, None], state)
-    y = states @ Cd + Dd * u
+    y = matmul(states, Cd) + Dd * u
     drive = jnp.zeros_like(states)
     if d_delta is not None:
-        drive = drive + states @ d_delta.T
+        drive = drive + matmul(states, d_delta.T)
     if dBd is not None:
         drive = drive + dBd[None] * u[:, None]
     if du is not None:
         drive = drive + Bd[None] * du[:, None]
     dstates, dlast = matrix_affine_scan(delta, drive, jnp.zeros_like(state) if dstate is None else dstate)
-    dy = dstates @ Cd
+    dy = matmul(dstates, Cd)
     if dCd is not None:
-        dy = dy + states @ dCd
+        dy = dy + matmul(states, dCd)
     if dDd is not None:
         dy = dy + dDd * u
     if du is not None:
@@ -285,8 +285,8 @@ def discretise_state_space(
         M = jnp.block([[A * dt, eye], [zero, zero]])
         F = expm(M)
         F12 = F[:n, n:] * dt
-        delta = A @ F12
-        Bd = F12 @ B
+        delta = matmul(A, F12)
+        Bd = matmul(F12, B)
         gamma1 = jnp.zeros((n,), dtype)
         Dd = D
     else:
@@ -294,10 +294,10 @@ def discretise_state_space(
         F = expm(M)
         F12 = F[:n, n : 2 * n] * dt
         F13 = F[:n, 2 * n :] * dt
-        delta = A @ F12
-        gamma1 = F13 @ B
-        Bd = F12 @ B + delta @ gamma1
-        Dd = D + jnp.dot(C, gamma1)
+        delta = matmul(A, F12)
+        gamma1 = matmul(F13, B)
+        Bd = matmul(F12, B) + matmul(delta, gamma1)
+        Dd = D + matmul(C, gamma1)
     return DiscreteStateSpace(eye + delta, Bd, C, Dd, delta, gamma1, dt, hold)
 
 
