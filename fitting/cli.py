@@ -553,7 +553,11 @@ def _check_fit_data(dataset, targets) -> None:
 
 # the data-driven starts are fitted together only while they need no more than this (measured when their
 # linearisations were vmapped together, before XLA:CPU formed them one start at a time: two starts on one
-# 1e6-sample record peaked at 2.3 GB resident and took 3.3 times as long as one, which peaked at 1.55 GB)
+# 1e6-sample record peaked at 2.3 GB resident and took 3.3 times as long as one, which peaked at 1.55 GB). On XLA:CPU
+# the starts' memory no longer adds up, but their time does: re-measured with one start at a time on a 1e6-sample
+# record of the plant study (PI draw 0, triangles, 20 parameters, 2 cores), two starts forced past this gate peaked at
+# 1.83 GB against 1.87 GB for one, and took 280 s against 147 s for the whole command (178 s against 34 s for the
+# first fit: the cold start ran 147 steps and ended higher), the same result. The gate stays a cost gate.
 MULTI_START_MEMORY = 3 * 2**29
 # at most this many re-seeded fits after the first (each kept only when it lowers the cost), another only after one
 # that lowered the cost by more than this fraction
