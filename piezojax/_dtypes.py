@@ -72,11 +72,19 @@ def module_float_dtype(module: eqx.Module, *extra: ArrayLike):
 
 
 def matmul(a: ArrayLike, b: ArrayLike) -> jax.Array:
-    """`a @ b` (also for vectors: `jnp.dot`'s inner product) at the full precision of its dtype on every backend.
+    """`jnp.matmul(a, b)` at the full precision of its dtype on every backend (for 1-D and 2-D operands the same as
+    `jnp.dot`; unlike it, no scalars, and operands above 2-D broadcast as stacks of matrices).
 
     JAX's default precision lets GPUs multiply float32 matrices in TF32 (a 10-bit mantissa): on an H200 the PI
-    operator's float32 Jacobian, a product of the plays' states and weights, came out 3e-4 relative from the same
-    product at full precision. Every matrix product of piezojax's models goes through here. On the CPU, and in float64
+    operator's float32 Jacobian, whose columns are products of the plays' states and weights, came out up to 3e-4
+    relative from the same Jacobian by autodiff through the scan. The matrix products of piezojax's models and of
+    `fitting`'s normal equations go through here (polynomial products through `polymul`). On the CPU, and in float64
     everywhere, it is the plain product.
     """
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
+def polymul(a: ArrayLike, b: ArrayLike) -> jax.Array:
+    """`jnp.polymul(a, b)` of two 1-D coefficient arrays (highest power first) at the full precision of their dtype:
+    JAX forms it as a convolution, which GPUs also run in TF32 for float32 by default (see `matmul`)."""
+    return jnp.convolve(a, b, precision=jax.lax.Precision.HIGHEST)

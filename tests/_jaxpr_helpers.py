@@ -47,8 +47,9 @@ def runs_outside_cond(closed, primitive: str) -> bool:
 
 
 def reduced_precision_products(closed) -> list[str]:
-    """The matrix products (`dot_general`, at any depth) of the program whose precision is not HIGHEST for both
-    operands: on a GPU JAX's default precision multiplies float32 matrices in TF32."""
+    """The matrix products and convolutions (`dot_general`, `conv_general_dilated`, at any depth) of the program
+    whose precision is not HIGHEST for both operands: on a GPU JAX's default precision multiplies float32 matrices
+    (and convolves float32 arrays) in TF32."""
     import jax
 
     highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
@@ -56,9 +57,10 @@ def reduced_precision_products(closed) -> list[str]:
 
     def search(jaxpr):
         for e in jaxpr.eqns:
-            if e.primitive.name == "dot_general" and e.params.get("precision") != highest:
+            if (e.primitive.name in ("dot_general", "conv_general_dilated")
+                    and e.params.get("precision") != highest):
                 shapes = [str(v.aval.str_short()) for v in e.invars]
-                found.append(f"dot_general{tuple(shapes)} precision={e.params.get('precision')}")
+                found.append(f"{e.primitive.name}{tuple(shapes)} precision={e.params.get('precision')}")
             for j in _subjaxprs(e.params):
                 search(j)
 

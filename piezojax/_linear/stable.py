@@ -7,7 +7,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_scalar, check_value, check_vector, concrete_or_none
-from .._dtypes import common_float_dtype
+from .._dtypes import common_float_dtype, polymul
 from .base import AbstractLinearSystem
 from .transfer_function import TransferFunction, normalise_tf
 
@@ -162,7 +162,7 @@ class StableTransferFunction(AbstractLinearSystem):
         for k in range(m1):
             key = slots[k]
             factor = jnp.stack([one, -self.zeros[k]])
-            zero_polys[key] = factor if key not in zero_polys else jnp.polymul(zero_polys[key], factor)
+            zero_polys[key] = factor if key not in zero_polys else polymul(zero_polys[key], factor)
         for i in range(m2):
             wz, zz = self.zero_omega[i], self.zero_zeta[i]
             zero_polys[("pair", i)] = jnp.stack([one, 2 * zz * wz, wz * wz])
@@ -211,14 +211,14 @@ class StableTransferFunction(AbstractLinearSystem):
         """The monic denominator $D(s)$, highest power first."""
         den = jnp.ones((1,), self.gain.dtype)
         for sec in self._sections(self.omega, self.zeta, self.poles):
-            den = jnp.polymul(den, sec[2])
+            den = polymul(den, sec[2])
         return den
 
     def _zero_numerator(self) -> Array:
         num = jnp.ones((1,), self.gain.dtype)
         for sec in self._sections(self.omega, self.zeta, self.poles):
             if sec[4] is not None:
-                num = jnp.polymul(num, sec[4])
+                num = polymul(num, sec[4])
         return num
 
     def numerator(self) -> Float[Array, " n+1"]:
@@ -318,7 +318,7 @@ class StableTransferFunction(AbstractLinearSystem):
             dc = dc * g
             rest = jnp.ones((1,), dtype)
             for later in sections[s_idx + 1 :]:
-                rest = jnp.polymul(rest, later[2])
+                rest = polymul(rest, later[2])
             p1 = dc * rest
             cols.append(p1)
             if kind == "pair":  # x2 = s x1 / omega
