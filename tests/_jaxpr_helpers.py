@@ -59,7 +59,7 @@ def reduced_precision_products(closed) -> list[str]:
         for e in jaxpr.eqns:
             if (e.primitive.name in ("dot_general", "conv_general_dilated")
                     and e.params.get("precision") != highest):
-                shapes = [str(v.aval.str_short()) for v in e.invars]
+                shapes = [v.aval.str_short() for v in e.invars]
                 found.append(f"{e.primitive.name}{tuple(shapes)} precision={e.params.get('precision')}")
             for j in _subjaxprs(e.params):
                 search(j)

@@ -40,7 +40,6 @@ def expm(M: Float[Array, "k k"]) -> Float[Array, "k k"]:
     polynomial (Horner, 18 small matmuls) compiles in a fraction of that, needs no solve, and keeps the blocks of
     integrals of $e^{A\tau}$ accurate to relative rounding.
     """
-    dot = matmul
     dtype = M.dtype
     norm = jnp.max(jnp.sum(jnp.abs(M), axis=0))
     # The number of squarings is piecewise constant in M: no gradient flows through it.
@@ -52,12 +51,12 @@ def expm(M: Float[Array, "k k"]) -> Float[Array, "k k"]:
     # Horner: R <- I + X R / k for k = 18..1. Loops keep one matmul each in the compiled graph: XLA:CPU compile
     # time grows with the number of dot ops (18 unrolled ones took ~3 s to compile here).
     def horner(i, R):
-        return eye + dot(X, R) / (_TAYLOR_DEGREE - i).astype(dtype)
+        return eye + matmul(X, R) / (_TAYLOR_DEGREE - i).astype(dtype)
 
     R = jax.lax.fori_loop(0, _TAYLOR_DEGREE, horner, eye)
 
     def square(i, R):
-        return jnp.where(i < s, dot(R, R), R)
+        return jnp.where(i < s, matmul(R, R), R)
 
     return jax.lax.fori_loop(0, _MAX_SQUARINGS, square, R)
 
