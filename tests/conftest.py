@@ -1,14 +1,24 @@
+import atexit
 import os
+import shutil
+import tempfile
 
 import jax
 import pytest
 from hypothesis import HealthCheck, settings
 
-from piezojax import enable_fast_cpu_scans
+from piezojax import enable_compilation_cache, enable_fast_cpu_scans
 
-# The command line keeps compiled programs in a persistent cache; the tests compile afresh (one test checks the cache
-# with a folder of its own)
-os.environ.setdefault("PIEZOJAX_CACHE_DIR", "off")
+# One persistent compilation cache per test run, in a temporary folder removed at its end: a program compiles once
+# per run instead of once per test module (the modules drop their compiled programs, below), per fitted closure and
+# per command line the tests start. The test workers and those command lines inherit the folder through
+# $PIEZOJAX_CACHE_DIR. `PIEZOJAX_CACHE_DIR=off` compiles everything afresh; a folder named there is used and kept.
+# (tests/test_compilation_cache.py checks the cache itself with folders of its own.)
+if "PIEZOJAX_CACHE_DIR" not in os.environ:
+    _run_cache = tempfile.mkdtemp(prefix="piezojax-tests-xla-")
+    os.environ["PIEZOJAX_CACHE_DIR"] = _run_cache
+    atexit.register(shutil.rmtree, _run_cache, ignore_errors=True)
+enable_compilation_cache()
 # Before any computation: long scan bodies (vmap, jacfwd) compile to fused loops (see piezojax/_config.py).
 enable_fast_cpu_scans()
 jax.config.update("jax_enable_x64", True)

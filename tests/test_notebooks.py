@@ -18,7 +18,7 @@ def test_the_notebooks_are_there():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_runs(path, monkeypatch, tmp_path):
+def test_notebook_runs(path, monkeypatch):
     import jupytext
     import nbformat
     from nbclient import NotebookClient
@@ -29,8 +29,8 @@ def test_notebook_runs(path, monkeypatch, tmp_path):
     assert sum(c.cell_type == "code" for c in nb.cells) >= 4
     monkeypatch.setenv("PIEZOJAX_NOTEBOOK_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    # a compilation cache of its own: the command line run by notebook 02 reuses the programs its kernel compiled
-    monkeypatch.setenv("PIEZOJAX_CACHE_DIR", str(tmp_path / "xla"))
+    # the kernel and the command line run by notebook 02 share the test run's compilation cache ($PIEZOJAX_CACHE_DIR,
+    # tests/conftest.py)
     client = NotebookClient(nb, timeout=600, kernel_name="python3",
                             resources={"metadata": {"path": str(path.parent)}})
     client.execute()  # raises CellExecutionError (with the cell and traceback) on the first failing cell
