@@ -129,14 +129,36 @@ def validation(rate: float, quick: bool) -> dict[str, np.ndarray]:
     }
 
 
+# The bench runs every command held at its last value up to a multiple of PAD_SAMPLES samples, and the outputs are
+# cut back to the command's length: the records of every length then share one compiled program (each length
+# compiled its own, about 2 s apiece). The cut record is the unpadded one to the bit: the bench is causal and draws
+# its noise per sample (tests/test_experiment_quant2009.py checks it).
+PAD_SAMPLES = 16384
+_bench_record = eqx.filter_jit(lambda b, v, k: b.record(v, k))
+_bench_truth = eqx.filter_jit(lambda b, v: b.truth(v))
+
+
+def _padded(command) -> tuple[jax.Array, int]:
+    c = np.asarray(command, dtype=float)
+    total = -(-c.size // PAD_SAMPLES) * PAD_SAMPLES
+    return jnp.asarray(np.concatenate([c, np.full(total - c.size, c[-1])])), c.size
+
+
+def _truth(bench: pj.QuantBench, command) -> dict[str, np.ndarray]:
+    """The bench's noise-free response to `command` (`QuantBench.truth`) as NumPy."""
+    v, n = _padded(command)
+    return {name: np.asarray(value)[:n] for name, value in _bench_truth(bench, v).items()}
+
+
 def _record(bench: pj.QuantBench, command: np.ndarray, key) -> dict[str, np.ndarray]:
     """A bench record as NumPy: measured `v_in`, `x` [m], `charge` [C] and the noise-free `true_x`,
     `true_charge`."""
-    rec = eqx.filter_jit(lambda b, v, k: b.record(v, k))(bench, jnp.asarray(command), key)
-    tr = eqx.filter_jit(lambda b, v: b.truth(v))(bench, jnp.asarray(command))
-    return {"v_in": np.asarray(rec.v_in), "x": np.asarray(rec.displacement),
-            "charge": np.asarray(bench.charge(rec.v_out)), "true_x": np.asarray(tr["x"]),
-            "true_charge": np.asarray(tr["charge"]), "true_v": np.asarray(tr["v"])}
+    v, n = _padded(command)
+    rec = _bench_record(bench, v, key)
+    tr = _truth(bench, command)
+    return {"v_in": np.asarray(rec.v_in)[:n], "x": np.asarray(rec.displacement)[:n],
+            "charge": np.asarray(bench.charge(rec.v_out))[:n], "true_x": tr["x"],
+            "true_charge": tr["charge"], "true_v": tr["v"]}
 
 
 # ----------------------------------------------------------------------------------------------- the model
@@ -316,7 +338,6 @@ def linearisation(bench: pj.QuantBench, models: dict, gain: float, rate: float, 
     t10 = _time(0.3 if quick else 0.5, rate)
     refs = {"1 Hz positive sine": top / 2 * (1 - np.cos(2 * np.pi * t1)),
             "10 Hz triangle": top * (1 - np.abs(((t10 * 10) % 1) * 2 - 1))}
-    truth = eqx.filter_jit(lambda b, v: b.truth(v)["x"])
     out = {}
     for rname, ref in refs.items():
         volts = {"plain gain": ref / gain}
@@ -326,7 +347,7 @@ def linearisation(bench: pj.QuantBench, models: dict, gain: float, rate: float, 
                 volts[f"{label} {kind} inverse"] = np.asarray(inverse(jnp.asarray(ref), dt))
         rows = {}
         for method, v in volts.items():
-            x = np.asarray(truth(bench, jnp.asarray(v)))
+            x = _truth(bench, v)["x"]
             e = x - ref
             rows[method] = {"rms_microstrain": float(1e6 * np.sqrt(np.mean(e**2)) / bench.length),
                             "max_microstrain": float(1e6 * np.max(np.abs(e)) / bench.length),
@@ -351,7 +372,7 @@ def load_study(bench: pj.QuantBench, model: pj.ElectromechanicalActuator, signal
             row[label] = {"strain": errors(np.asarray(sim["x"]), rec["true_x"]),
                           "charge": errors(np.asarray(sim["charge"]), rec["true_charge"]),
                           "x": np.asarray(sim["x"])}
-        free_x = eqx.filter_jit(lambda b, v: b.truth(v)["x"])(bench, jnp.asarray(cmd))  # noise-free: no record
+        free_x = _truth(bench, cmd)["x"]  # noise-free: no record
         row["free strain range (µε)"] = float(1e6 * np.ptp(np.asarray(free_x)) / bench.length)
         row["loaded strain range (µε)"] = float(1e6 * np.ptp(rec["true_x"]) / bench.length)
         out[name] = {"rows": row, "record": rec}

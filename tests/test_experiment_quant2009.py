@@ -1,6 +1,7 @@
 """`python -m experiments.quant2009 --quick` end to end (paper 003 on `pj.QuantBench`), and its staged steps on
 models whose answer is known."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -43,6 +44,23 @@ def test_second_order_fit_recovers_gain_frequency_and_damping():
     assert abs(got["gain"] / 0.45 - 1) < 0.01
     assert abs(got["omega"] / w - 1) < 1e-3
     assert abs(got["zeta"] / 0.03 - 1) < 0.05
+
+
+def test_padded_bench_records_are_the_unpadded_ones():
+    # the experiment runs the bench on commands held up to PAD_SAMPLES samples (one compilation for every length)
+    # and cuts the outputs back: to the bit the record and truth of the command itself
+    bench = pj.QuantBench()
+    command = np.concatenate([np.linspace(0.0, 150.0, 300), np.linspace(150.0, -60.0, 301)])
+    key = jax.random.key(7)
+    got = quant2009._record(bench, command, key)
+    rec = quant2009._bench_record(bench, jnp.asarray(command), key)  # the same compiled functions, unpadded
+    truth = quant2009._bench_truth(bench, jnp.asarray(command))
+    assert got["x"].shape == (command.size,)
+    np.testing.assert_array_equal(got["v_in"], np.asarray(rec.v_in))
+    np.testing.assert_array_equal(got["x"], np.asarray(rec.displacement))
+    np.testing.assert_array_equal(got["charge"], np.asarray(bench.charge(rec.v_out)))
+    for name in ("x", "charge", "v"):
+        np.testing.assert_array_equal(got[f"true_{name}"], np.asarray(truth[name]))
 
 
 @pytest.mark.slow
