@@ -9,8 +9,7 @@ from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
-import scipy.optimize
+import scipy  # its submodules load on first use: scipy.signal alone takes about a second to import
 from jaxtyping import ArrayLike
 
 from .._checks import PiezojaxValueError
