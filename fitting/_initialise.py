@@ -12,7 +12,7 @@ data-dependent size, so it is plain NumPy/SciPy (not jit-able, not differentiabl
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy  # its submodules load on first use: scipy.signal alone takes about a second to import
+import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError

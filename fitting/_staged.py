@@ -4,7 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy  # its submodules load on first use: scipy.signal alone takes about a second to import
+import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError

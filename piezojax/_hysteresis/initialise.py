@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
-import scipy  # its submodules load on first use: scipy.signal alone takes about a second to import
+import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
 from jaxtyping import ArrayLike
 
 from .._checks import PiezojaxValueError
