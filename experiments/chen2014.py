@@ -340,9 +340,24 @@ def _sysidentpy(u, y, u_val, y_val):
 # ----------------------------------------------------------------------------------------------- 5. control
 
 
+# Every closed loop runs on its reference held at the last value up to a multiple of PAD_SAMPLES samples, and is cut
+# back: one compilation per kind of controller instead of one per reference length. The loop is causal and the
+# preview holds the last sample past the end, so the cut records are those of the unpadded run (tested to the bit).
+PAD_SAMPLES = 8192
+
+
+@eqx.filter_jit
+def _closed_loop(controller, plant, observer, ref, noise):
+    return pj.closed_loop(controller, plant, ref, observer=observer, noise=noise, preview=PREVIEW)
+
+
 def _run(controller, plant, observer, ref, noise):
-    return eqx.filter_jit(lambda c, r, w: pj.closed_loop(c, plant, r, observer=observer, noise=w, preview=PREVIEW))(
-        controller, ref, noise)
+    ref, noise = np.asarray(ref), np.asarray(noise)
+    n = ref.shape[0]
+    extra = -n % PAD_SAMPLES
+    rec = _closed_loop(controller, plant, observer, jnp.asarray(np.concatenate([ref, np.full(extra, ref[-1])])),
+                       jnp.asarray(np.concatenate([noise, np.zeros((extra, *noise.shape[1:]))])))
+    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)[:n]), rec)
 
 
 def tune_pid(plant, observer, pid, ref, noise, feedforward=None):

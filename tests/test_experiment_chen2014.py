@@ -2,9 +2,34 @@
 
 import json
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
+import piezojax as pj
 from experiments import chen2014
+
+
+def test_padded_closed_loops_are_the_unpadded_ones():
+    # the experiment runs every closed loop on its reference held up to PAD_SAMPLES samples (one compilation per
+    # kind of controller) and cuts the records back: to the bit those of the reference itself, for a PID and for the
+    # adaptive inverse controller, which learns at every sample
+    plant = pj.ChenBench().plant(1 / chen2014.CONTROL_RATE, bias=chen2014.BIAS, substeps=10)
+    n = 700
+    ref = jnp.asarray(chen2014.triangle(10.0, n, chen2014.CONTROL_RATE))
+    noise = jax.random.normal(jax.random.key(3), (n, 2))
+    pid = pj.PID(0.0, 1e9, dt=1 / chen2014.CONTROL_RATE, offset=chen2014.BIAS, u_min=-20.0, u_max=200.0)
+    aic = pj.AdaptiveInverseController(jax.random.key(4), hidden=6, measurement_lags=0, reference_lags=3,
+                                       learning_rate=0.02, momentum=0.5, offset=chen2014.BIAS, command_scale=30.0,
+                                       output_scale=chen2014.AMPLITUDE, u_min=-20.0, u_max=200.0,
+                                       preview=chen2014.PREVIEW)
+    for controller in (pid, aic):
+        got = chen2014._run(controller, plant, None, ref, noise)
+        plain = chen2014._closed_loop(controller, plant, None, ref, noise)  # the same function, unpadded
+        assert got.control.shape == (n,)
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(plain), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 @pytest.mark.slow
