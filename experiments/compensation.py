@@ -123,13 +123,23 @@ def reference(truth: pj.Actuator, frequency: float, seconds: float, middle: floa
     return jnp.asarray(rest + ramp * (middle - rest + AMPLITUDE * np.sin(2 * np.pi * frequency * t)))
 
 
+# Module-level jits: every compensator and frequency of a study reuses the programs of its structure and length.
+@eqx.filter_jit
+def _run_inverse(inv, ref):
+    return inv(ref, DT)
+
+
+@eqx.filter_jit
+def _displacement(model, v):
+    return model.simulate(v, DT).displacement
+
+
 def voltages(model: pj.Actuator, ref: jnp.ndarray, gain: tuple[float, float], iterations: int) -> dict:
     """The three feedforward voltages for `ref` from `model` (and the plain gain)."""
     k, b = gain
-    run = eqx.filter_jit(lambda inv, r: inv(r, DT))  # built outside jit: the relative degree needs values
 
-    def inverse(m):
-        return run(m.inverse(V_MIN, V_MAX, iterations=iterations), ref)
+    def inverse(m):  # the inverse is built outside jit: its relative degree needs values
+        return _run_inverse(m.inverse(V_MIN, V_MAX, iterations=iterations), ref)
 
     return {
         "plain gain": jnp.clip((ref - b) / k, V_MIN, V_MAX),
@@ -142,13 +152,12 @@ def study(truth: pj.Actuator, compensators: dict[str, pj.Actuator], gain: tuple[
           frequencies=(1.0, 10.0), seconds: float = 3.0, score_from: float = 1.0, iterations: int = 20) -> list:
     """Tracking errors of every method and compensator on `truth`: rows of dicts (µm)."""
     rows = []
-    simulate = eqx.filter_jit(lambda m, v: m.simulate(v, DT).displacement)
     for f in frequencies:
         ref = reference(truth, f, seconds, middle)
         scored = slice(int(round(score_from / DT)), None)
         for name, model in compensators.items():
             for method, v in voltages(model, ref, gain, iterations).items():
-                e = np.asarray(simulate(truth, v) - ref)[scored]
+                e = np.asarray(_displacement(truth, v) - ref)[scored]
                 rows.append({"frequency_hz": f, "model": name, "method": method,
                              "rms_um": float(np.sqrt(np.mean(e**2)) * 1e6), "max_um": float(np.max(np.abs(e)) * 1e6),
                              "v_min": float(jnp.min(v)), "v_max": float(jnp.max(v))})
