@@ -7,6 +7,7 @@ numpy/scipy functions (not jit-able and not differentiable, on purpose).
 import functools
 from collections.abc import Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
@@ -96,12 +97,19 @@ def nnls_gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return coef / norms
 
 
+@eqx.filter_jit
+def _plays(play: PlayOperator, v):
+    """The play outputs of one record, jitted once per record length and number of plays (an eager call would trace
+    its scan again every time)."""
+    return play(v)
+
+
 def _design(records, thresholds, max_rows: int | None = None):
     """Rows [v, P_r1[v], ..., P_rn[v]] of every record (demagnetised start), and the outputs: every sample, or the
     `row_subset` of at most `max_rows` (the plays run over each whole record)."""
     play = PlayOperator(jnp.asarray(thresholds))
     keep = row_subset([v.size for v, _ in records], max_rows)
-    blocks = [np.column_stack([v[k], np.asarray(play(jnp.asarray(v)))[k]]) for (v, _), k in zip(records, keep)]
+    blocks = [np.column_stack([v[k], np.asarray(_plays(play, jnp.asarray(v)))[k]]) for (v, _), k in zip(records, keep)]
     return np.concatenate(blocks), np.concatenate([y[k] for (_, y), k in zip(records, keep)])
 
 
