@@ -352,6 +352,8 @@ def _closed_loop(controller, plant, observer, ref, noise):
 
 
 def _run(controller, plant, observer, ref, noise):
+    """`pj.closed_loop` of `controller` on `plant` with `observer` for the reference `ref` and the plant noise
+    `noise` (time first), run padded to a multiple of PAD_SAMPLES and cut back to the reference's length."""
     ref, noise = np.asarray(ref), np.asarray(noise)
     n = ref.shape[0]
     extra = -n % PAD_SAMPLES
