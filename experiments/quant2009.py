@@ -144,9 +144,9 @@ def _padded(command) -> tuple[jax.Array, int]:
     return jnp.asarray(np.concatenate([c, np.full(total - c.size, c[-1])])), c.size
 
 
-def _truth(bench: pj.QuantBench, command) -> dict[str, np.ndarray]:
-    """The bench's noise-free response to `command` (`QuantBench.truth`) as NumPy."""
-    v, n = _padded(command)
+def _truth(bench: pj.QuantBench, v: jax.Array, n: int) -> dict[str, np.ndarray]:
+    """The bench's noise-free response (`QuantBench.truth`) to the command padded by `_padded`, cut back to its `n`
+    samples, as NumPy."""
     return {name: np.asarray(value)[:n] for name, value in _bench_truth(bench, v).items()}
 
 
@@ -155,7 +155,7 @@ def _record(bench: pj.QuantBench, command: np.ndarray, key) -> dict[str, np.ndar
     `true_charge`."""
     v, n = _padded(command)
     rec = _bench_record(bench, v, key)
-    tr = _truth(bench, command)
+    tr = _truth(bench, v, n)
     return {"v_in": np.asarray(rec.v_in)[:n], "x": np.asarray(rec.displacement)[:n],
             "charge": np.asarray(bench.charge(rec.v_out))[:n], "true_x": tr["x"],
             "true_charge": tr["charge"], "true_v": tr["v"]}
@@ -347,7 +347,7 @@ def linearisation(bench: pj.QuantBench, models: dict, gain: float, rate: float, 
                 volts[f"{label} {kind} inverse"] = np.asarray(inverse(jnp.asarray(ref), dt))
         rows = {}
         for method, v in volts.items():
-            x = _truth(bench, v)["x"]
+            x = _truth(bench, *_padded(v))["x"]
             e = x - ref
             rows[method] = {"rms_microstrain": float(1e6 * np.sqrt(np.mean(e**2)) / bench.length),
                             "max_microstrain": float(1e6 * np.max(np.abs(e)) / bench.length),
@@ -372,7 +372,7 @@ def load_study(bench: pj.QuantBench, model: pj.ElectromechanicalActuator, signal
             row[label] = {"strain": errors(np.asarray(sim["x"]), rec["true_x"]),
                           "charge": errors(np.asarray(sim["charge"]), rec["true_charge"]),
                           "x": np.asarray(sim["x"])}
-        free_x = _truth(bench, cmd)["x"]  # noise-free: no record
+        free_x = _truth(bench, *_padded(cmd))["x"]  # noise-free: no record
         row["free strain range (µε)"] = float(1e6 * np.ptp(np.asarray(free_x)) / bench.length)
         row["loaded strain range (µε)"] = float(1e6 * np.ptp(rec["true_x"]) / bench.length)
         out[name] = {"rows": row, "record": rec}
