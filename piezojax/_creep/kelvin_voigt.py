@@ -84,8 +84,9 @@ class KelvinVoigtCreep(AbstractCreep):
         return self._c0(self.stiffnesses.dtype)
 
     def settled_gain(self) -> Array:
-        r"""$h(\infty) = 1/k_0 + \sum_i 1/k_i$ (`step_response(inf)`)."""
-        return self.step_response(jnp.asarray(jnp.inf, self._dtype()))
+        r"""$h(\infty) = 1/k_0 + \sum_i 1/k_i$, the limit of `step_response` (written out: evaluating the step
+        response at $t = \infty$ gives the value but a NaN derivative in $\tau_i$, $\infty \cdot e^{-\infty}$)."""
+        return self._c0(self.stiffnesses.dtype) + jnp.sum(1 / self.stiffnesses)
 
     def _simulate(self, u: Array, dt: Array, hold: str) -> Array:
         # The one first-order lag of the library (`lags.lag_sum`): elementwise scan body, hand-derived forward
