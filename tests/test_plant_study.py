@@ -121,9 +121,10 @@ def test_failed_start_falls_back_with_warning(pi_records, monkeypatch):
 
 def test_starts_share_structure_and_fit_together(pi_records):
     """`ModelConfig.starts`: the rule-based and the cold start, closest to the data first, fitted together under
-    vmap; the result lists both."""
+    vmap; the result lists both. With a fitted prehistory, so that the series creep starts settled at the remanent
+    output (its settled gain's derivatives were once NaN, and every start stopped at a non-finite Jacobian)."""
     config = parse_config('[hysteresis]\nkind = "bouc_wen"\n[creep]\nkind = "kelvin_voigt"\nstructure = "series"\n'
-                          'order = 2\n[dynamics]\norder = 2\n')
+                          'order = 2\n[dynamics]\norder = 2\n[state]\nprehistory = true\n')
     with warnings.catch_warnings():
         warnings.simplefilter("error", StartWarning)
         starts = config.starts(pi_records)
@@ -138,6 +139,7 @@ def test_starts_share_structure_and_fit_together(pi_records):
     res = fitting.fit(starts[0], pi_records, predictor=config.predictor(), targets=targets,
                       free=config.fit_free(targets), starts=starts, max_steps=5, progress=False, kink_restarts=0)
     assert len(res.starts) == 2 and sum(s["best"] for s in res.starts) == 1
+    assert res.code != "nonfinite_initial" and res.cost < res.initial_cost, res.reason
 
 
 def test_plant_study_reduced():
