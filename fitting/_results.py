@@ -90,7 +90,8 @@ class FitResult:
       their correlations as NaN.
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range, the
       record's white-noise level `noise` and `rmse_over_noise` (see `error_metrics`); 1 within a few per cent for a
-      model that explains the data to their noise, and `report` names a lack of fit from `LACK_OF_FIT_RATIO` (1.2).
+      model that explains the data to their noise, and the report of a converged fit names a lack of fit from
+      `LACK_OF_FIT_RATIO` (1.2).
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
       `reason`, `steps`, and `best` (the one reported); `None` otherwise.
     - `u`: the scaled parameters the solver worked with (`Problem.u_of` of `params`), to compare with another
@@ -198,7 +199,7 @@ class FitResult:
                     f"{m['max_error_percent']:7.3f} %  " + ("     -" if ratio is None else f"{ratio:6.2f}")
                 )
         worst = lack_of_fit(self.metrics)
-        if worst is not None:
+        if worst is not None and self.success:  # (a fit stopped early may only be short of its minimum)
             lines.append(
                 f"lack of fit: the residual is up to {worst[0]:.2f}x the measurement noise ({worst[1]}, {worst[2]}; "
                 "the noise estimated from the record's fourth differences): the model misses part of what the data "

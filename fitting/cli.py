@@ -768,10 +768,10 @@ def _lack_of_fit_hint(config, result) -> None:
     from ._model_kinds import ACTUATOR
     from ._results import lack_of_fit
 
-    if lack_of_fit(result.metrics) is None or config.model_kind is not ACTUATOR or config.hysteresis_kind.empty:
+    if not result.success or lack_of_fit(result.metrics) is None or config.model_kind is not ACTUATOR:
         return
     creep = config.kind("creep")
-    if creep.empty or "structure" in config.creep_options or len(creep.structures) < 2:
+    if config.hysteresis_kind.empty or creep.empty or "structure" in config.creep_options or len(creep.structures) < 2:
         return
     _out("  the creep is in parallel with the hysteresis (the default); if this actuator's creep acts on the "
          "hysteresis' output, `structure = \"series\"` in [creep] fits that structure")
