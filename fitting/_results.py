@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -18,14 +19,18 @@ from ._stationarity import max_gradient_cosine
 # A fit whose residual is this many times the records' white-noise level or more is reported as missing part of
 # what the data show. At the noise, the ratio is 1 within a few per cent: `estimate_noise_std` was within 5 % of the
 # true noise on the independent plant's records (`experiments.plant_study`), and the RMSE of n white samples within
-# about 1/sqrt(2n).
+# about 1/sqrt(2n). Shorter records scatter more (the estimate by about 11 % at 200 samples, 5 % at 1000), so only
+# records of LACK_OF_FIT_MIN_SAMPLES or more are judged.
 LACK_OF_FIT_RATIO = 1.2
+LACK_OF_FIT_MIN_SAMPLES = 1000
 
 
 def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float | None]:
     """RMSE (channel units), NRMSE and max |error| in % of the measured range, the measurement's white-noise level
-    `noise` (`estimate_noise_std`, channel units) and `rmse_over_noise` (None for a record without noise above
-    rounding: a noise estimate at most 1e-9 of the largest |value|, e.g. noiseless simulated data)."""
+    `noise` (`estimate_noise_std`, channel units: the sample-to-sample, white part of the noise; noise correlated
+    over samples is underestimated) and `rmse_over_noise` (None for a record without noise above rounding: a noise
+    estimate at most 1e-9 of the largest |value|, e.g. noiseless simulated data of a signal slow against the
+    sampling)."""
     return _metrics(np.asarray(predicted, float) - np.asarray(measured, float), measured)
 
 
@@ -55,10 +60,12 @@ def _lack_of_fit_summary(metrics) -> dict | None:
 
 
 def lack_of_fit(metrics: dict[str, dict[str, dict]]) -> tuple[float, str, str] | None:
-    """The largest `rmse_over_noise` of `metrics` (per experiment, per channel, as `FitResult.metrics`) with its
-    experiment and channel, when it is `LACK_OF_FIT_RATIO` or more; else None."""
-    worst = max(((m.get("rmse_over_noise") or 0.0, name, c) for name, chans in metrics.items()
-                 for c, m in chans.items()), default=None)
+    """The largest `rmse_over_noise` of `metrics` (per experiment, per channel, as `FitResult.metrics`) over the
+    records of `LACK_OF_FIT_MIN_SAMPLES` samples or more, with its experiment and channel, when it is
+    `LACK_OF_FIT_RATIO` or more; else None."""
+    ratios = [(m.get("rmse_over_noise"), name, c) for name, chans in metrics.items() for c, m in chans.items()
+              if m.get("samples", 0) >= LACK_OF_FIT_MIN_SAMPLES]
+    worst = max(((r, name, c) for r, name, c in ratios if r is not None and math.isfinite(r)), default=None)
     return worst if worst is not None and worst[0] >= LACK_OF_FIT_RATIO else None
 
 
@@ -91,7 +98,8 @@ class FitResult:
     - `metrics`: per experiment, per target channel: RMSE [channel units], NRMSE and max error in % of range, the
       record's white-noise level `noise` and `rmse_over_noise` (see `error_metrics`); 1 within a few per cent for a
       model that explains the data to their noise, and the report of a converged fit names a lack of fit from
-      `LACK_OF_FIT_RATIO` (1.2).
+      `LACK_OF_FIT_RATIO` (1.2; records of 1000 samples or more); `summary()`'s `lack_of_fit` gives the worst ratio
+      there, converged or not.
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
       `reason`, `steps`, and `best` (the one reported); `None` otherwise.
     - `u`: the scaled parameters the solver worked with (`Problem.u_of` of `params`), to compare with another
@@ -122,7 +130,7 @@ class FitResult:
     gradient_cosine: float
     num_residuals: int
     num_params: int
-    metrics: dict[str, dict[str, dict[str, float]]]
+    metrics: dict[str, dict[str, dict[str, float | None]]]
     starts: list[dict] | None = None
     u: Any = dataclasses.field(repr=False, default=None)
     predictor: Any = dataclasses.field(repr=False, default=None)

@@ -111,7 +111,8 @@ examples:
   piezojax predict fits/pi_creep whole_record.csv --score-from 7.0 --out predictions
 
 OUT is a folder with one CSV per input (t, v_in and the predicted channels on the input's time grid) and
-metrics.json; RMSE and NRMSE (% of the measured range) are printed for the channels a file also measures.
+metrics.json; RMSE, NRMSE (% of the measured range) and the RMSE over the file's noise level are printed for the
+channels a file also measures.
 """
 
 _SIMULATE_EXAMPLES = """\
@@ -762,19 +763,21 @@ def _cmd_fit(args) -> int:
 
 def _lack_of_fit_hint(config, result) -> None:
     """After a fit that leaves the residual above the noise (`FitResult.report` says so): where a CONFIG left the
-    creep's `structure` to its default (parallel), say that the other one exists. Measured on
-    `experiments.plant_study`'s plant (series creep): fitted in parallel, one of three draws kept 1.31x the noise in
-    training and 1.8-2.0x held out, against 1.00x for the series model."""
+    creep's `structure` to its default (parallel) and the displacement is the worst channel, name the other one.
+    Measured on `experiments.plant_study`'s plant (series creep): fitted in parallel, one of three draws kept 1.31x
+    the noise in training and 1.8-2.0x held out, against 1.00x for the series model."""
     from ._model_kinds import ACTUATOR
     from ._results import lack_of_fit
 
-    if not result.success or lack_of_fit(result.metrics) is None or config.model_kind is not ACTUATOR:
+    worst = lack_of_fit(result.metrics)
+    if not result.success or worst is None or worst[2] != "displacement" or config.model_kind is not ACTUATOR:
         return
     creep = config.kind("creep")
     if config.hysteresis_kind.empty or creep.empty or "structure" in config.creep_options or len(creep.structures) < 2:
         return
-    _out("  the creep is in parallel with the hysteresis (the default); if this actuator's creep acts on the "
-         "hysteresis' output, `structure = \"series\"` in [creep] fits that structure")
+    other = next(s for s in creep.structures if s != config.creep_structure)
+    _out(f"  the creep is in {config.creep_structure} with the hysteresis (the default); `structure = \"{other}\"` in "
+         f"[creep] fits the other structure ({'after the hysteresis' if other == 'series' else 'beside it'})")
 
 
 def load_fitted(model_dir) -> tuple:

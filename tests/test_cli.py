@@ -167,6 +167,21 @@ def test_error_metrics_noise_level(rng):
     assert noiseless["noise"] < 1e-15 and noiseless["rmse_over_noise"] is None
 
 
+def test_lack_of_fit_judges_long_finite_ratios():
+    """`lack_of_fit`: the worst finite ratio over records of 1000 samples or more; a NaN (a failed prediction), a
+    record without noise (None) or a short record neither hides nor makes one."""
+    from fitting._results import lack_of_fit
+
+    def m(ratio, samples=5000):
+        return {"rmse_over_noise": ratio, "samples": samples}
+
+    assert lack_of_fit({"a": {"displacement": m(1.1)}}) is None
+    assert lack_of_fit({"a": {"displacement": m(float("nan"))}, "b": {"displacement": m(1.5)},
+                        "c": {"displacement": m(None)}}) == (1.5, "b", "displacement")
+    assert lack_of_fit({"a": {"displacement": m(9.0, samples=200)}, "b": {"force": m(1.3)}}) == (1.3, "b", "force")
+    assert lack_of_fit({}) is None
+
+
 def test_predict_matches_direct_api(fitted, work, capsys):
     rc, out = fitted
     d, _ = work
@@ -183,6 +198,8 @@ def test_predict_matches_direct_api(fitted, work, capsys):
     for k in ("rmse", "nrmse_percent", "max_error_percent"):
         assert got[k] == pytest.approx(direct[k], rel=1e-9)
     assert f"RMSE {direct['rmse']:.6e}" in printed and f"NRMSE {direct['nrmse_percent']:.4f} %" in printed
+    assert got["rmse_over_noise"] == pytest.approx(direct["rmse_over_noise"], rel=1e-9)
+    assert f"{direct['rmse_over_noise']:.2f}x the noise" in printed
     written = fitting.load_experiment(pred_dir / "heldout.csv")
     np.testing.assert_array_equal(written.t, exp.t)
     np.testing.assert_allclose(written["displacement"], y, rtol=1e-15, atol=0)
