@@ -209,8 +209,8 @@ class FitResult:
         worst = lack_of_fit(self.metrics)
         if worst is not None and self.success:  # (a fit stopped early may only be short of its minimum)
             lines.append(
-                f"lack of fit: the residual is up to {worst[0]:.2f}x the measurement noise ({worst[1]}, {worst[2]}; "
-                "the noise estimated from the record's fourth differences): the model misses part of what the data "
+                f"lack of fit: the RMSE is {worst[0]:.2f}x the measurement noise in {worst[1]} ({worst[2]}; the worst "
+                "record, its noise estimated from its fourth differences): the model misses part of what the data "
                 "show, and the standard errors, which take the residual for white noise, understate the uncertainty"
             )
         return "\n".join(lines)

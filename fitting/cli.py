@@ -50,7 +50,7 @@ CONFIG is a TOML file naming the model blocks, their parameter values (for `fit`
   [creep]       kind = "kelvin_voigt" (order = 1, stiffnesses, time_constants)
                      | "logarithmic" (gamma, t0, gain) | "lag" (lags = 1, fractions, time_constants) | "none"
                      | "linear" (order = 1 poles [rad/s] < 0, real_zeros, zeros [rad/s] < 0, gain)
-                structure = "parallel" | "series" (after the hysteresis; "lag" only in series)
+                structure = "parallel" (default) | "series" (after the hysteresis; "lag" only in series)
   [dynamics]    order = 0 .. 8 (gain = 1, omega [rad/s], zeta, poles [rad/s] < 0)
                 zero_pairs (zero_omega [rad/s], zero_zeta), real_zeros (zeros [rad/s])
   [state]       offset = true | false | value [m];  prehistory = false | true | value [V]
@@ -745,13 +745,16 @@ def _cmd_fit(args) -> int:
         }
         if reseeded is not None:
             extra["cli"]["reseeded"] = reseeded
+        hints = _lack_of_fit_hints(config, result)
+        extra["cli"]["hints"] = hints
         _info(f"writing {out}", quiet)
         result.write_files(tmp, figures=not args.no_figures, extra=extra)
+        if hints:
+            fitting.files.atomic_write_text(tmp / "report.txt", "\n".join([result.report(), *hints]) + "\n")
         fitting.files.atomic_write_text(tmp / "config.toml", config.text)
         _check_interrupted()
         _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
-    _out(result.report())
-    _lack_of_fit_hint(config, result)
+    _out("\n".join([result.report(), *hints]))
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
         return _interrupt_status()
@@ -761,9 +764,10 @@ def _cmd_fit(args) -> int:
     return EXIT_OK
 
 
-def _lack_of_fit_hint(config, result) -> None:
-    """After a fit that leaves the residual above the noise (`FitResult.report` says so): where a CONFIG left the
-    creep's `structure` to its default (parallel) and the displacement is the worst channel, name the other one.
+def _lack_of_fit_hints(config, result) -> list[str]:
+    """The lines the command adds to the report (on standard output, in `report.txt` and as `cli.hints` in
+    `result.json`) after a fit that leaves the residual above the noise (`FitResult.report` says so): where a CONFIG
+    left the creep's `structure` to its default (parallel) and the displacement is the worst channel, the other one.
     Measured on `experiments.plant_study`'s plant (series creep): fitted in parallel, one of three draws kept 1.31x
     the noise in training and 1.8-2.0x held out, against 1.00x for the series model."""
     from ._model_kinds import ACTUATOR
@@ -771,13 +775,13 @@ def _lack_of_fit_hint(config, result) -> None:
 
     worst = lack_of_fit(result.metrics)
     if not result.success or worst is None or worst[2] != "displacement" or config.model_kind is not ACTUATOR:
-        return
+        return []
     creep = config.kind("creep")
     if config.hysteresis_kind.empty or creep.empty or "structure" in config.creep_options or len(creep.structures) < 2:
-        return
+        return []
     other = next(s for s in creep.structures if s != config.creep_structure)
-    _out(f"  the creep is in {config.creep_structure} with the hysteresis (the default); `structure = \"{other}\"` in "
-         f"[creep] fits the other structure ({'after the hysteresis' if other == 'series' else 'beside it'})")
+    return [f"  the creep is in {config.creep_structure} with the hysteresis (the default); `structure = \"{other}\"` "
+            f"in [creep] fits the other structure ({'after the hysteresis' if other == 'series' else 'beside it'})"]
 
 
 def load_fitted(model_dir) -> tuple:
@@ -820,6 +824,8 @@ def _cmd_predict(args) -> int:
     import numpy as np
 
     import fitting
+
+    from ._results import lack_of_fit
 
     out = _check_output(args.out, args.overwrite, "predict", inputs=[*args.data, *(args.history or [])],
                         fit_folder=args.model_dir)
@@ -874,6 +880,8 @@ def _cmd_predict(args) -> int:
             _out(f"  {c:<13} RMSE {m['rmse']:.6e}  NRMSE {m['nrmse_percent']:.4f} %  "
                  f"max {m['max_error_percent']:.4f} % of range"
                  + ("" if ratio is None else f"  {ratio:.2f}x the noise"))
+            if lack_of_fit({exp.name: {c: m}}) is not None:
+                _out(f"  above the noise: the model misses part of this record's {c}")
     _info(f"wrote {len(results)} prediction file(s) to {out}")
     return EXIT_OK
 

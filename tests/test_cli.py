@@ -141,9 +141,13 @@ def test_fit_names_a_lack_of_fit(work, tmp_path, capsys):
     worst = max((m["displacement"]["rmse_over_noise"], name) for name, m in res["metrics"].items())
     assert worst[0] > 1.2
     assert res["lack_of_fit"] == {"rmse_over_noise": worst[0], "experiment": worst[1], "channel": "displacement"}
-    assert f"lack of fit: the residual is up to {worst[0]:.2f}x the measurement noise ({worst[1]}" in printed
+    assert f"lack of fit: the RMSE is {worst[0]:.2f}x the measurement noise in {worst[1]} (displacement" in printed
     assert 'structure = "series"' in printed
-    assert "lack of fit" in (tmp_path / "fit" / "report.txt").read_text()
+    assert res["cli"]["hints"] and 'structure = \"series\"' in res["cli"]["hints"][0]
+    assert (tmp_path / "fit" / "report.txt").read_text().strip() == printed.strip()  # the hint included
+    # held out, a record that continues the misfit is named
+    rc = main(["predict", str(tmp_path / "fit"), files[2], "--out", str(tmp_path / "pred")])
+    assert rc == 0 and "above the noise: the model misses part of this record's displacement" in capsys.readouterr().out
 
 
 def test_error_metrics_noise_level(rng):
