@@ -613,11 +613,15 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     re-seeded fit's last accepted point is kept if its cost is lower, and the result returned has code
     `"interrupted"` (its reason names the verdict of the fit kept). Returns the result kept and, for
     `result.json`, what was done (`None` when nothing was dead; `"interrupted": True` when an interrupt ended it;
-    `"error"` when a round raised: the fit so far is kept and the error reported as a warning)."""
+    `"error"` when a round raised: the fit so far is kept and the error reported as a warning). A re-seeded result
+    kept reports the whole command's fitting: its steps, accepted steps and seconds summed over the first fit and
+    every re-seeded one, the first fit's initial cost and starts, and the cost history of the fits it comes from
+    (`_whole_run`)."""
     import fitting
 
     from ._solver import HARD_FAILURES
 
+    first, fits, lineage = result, [result], [result]
     rounds, interrupted, failure = [], False, None
     try:
         while len(rounds) < RESEED_ROUNDS:
@@ -628,11 +632,13 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             _info(f"{moved} dead or coinciding hysteresis element(s) re-seeded where the residual needs them; "
                   "fitting again", quiet)
             second = fitting.fit(model, dataset, **fit_args)
+            fits.append(second)
             stopped = second.code == "interrupted"
             kept = (second.code not in HARD_FAILURES or stopped) and second.cost < result.cost
             previous = result
             if kept:
                 result = second
+                lineage.append(second)
             rounds.append({"elements": moved, "cost_before": float(previous.cost), "cost_after": float(second.cost),
                            "steps": int(second.steps), "kept": bool(kept)})
             _info(f"re-seeded fit{' (interrupted)' if stopped else ''}: cost {second.cost:.6e} against "
@@ -649,6 +655,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     interrupted = interrupted or _pending_interrupt()
     if not rounds and not interrupted and failure is None:
         return result, None
+    if result is not first:
+        result = _whole_run(result, first, fits, lineage)
     before = rounds[0]["cost_before"] if rounds else float(result.cost)
     info = {"elements": sum(r["elements"] for r in rounds), "cost_before": before, "cost_after": float(result.cost),
             "kept": any(r["kept"] for r in rounds), "rounds": rounds}
@@ -660,6 +668,22 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     if failure is not None:
         info["error"] = failure
     return result, info
+
+
+def _whole_run(result, first, fits: list, lineage: list):
+    """`result` (the last of `lineage`, the fits each started from the one before) with the counts and the time of
+    all `fits` run, and `first`'s initial cost and starts; its history is `lineage`'s, one after the other (the cost
+    jumps up where plays were re-seeded), counted in the steps of the fits before."""
+    history, history_steps, offset = [], [], 0
+    for f in fits:
+        if any(f is g for g in lineage):
+            history += list(f.history)
+            history_steps += [offset + int(s) for s in f.history_steps]
+        offset += int(f.steps)
+    return dataclasses.replace(
+        result, steps=sum(int(f.steps) for f in fits), accepted_steps=sum(int(f.accepted_steps) for f in fits),
+        seconds=sum(float(f.seconds) for f in fits), initial_cost=first.initial_cost, starts=first.starts,
+        history=history, history_steps=history_steps)
 
 
 def _safe_name(name: str) -> str:

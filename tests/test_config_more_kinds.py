@@ -249,6 +249,33 @@ def test_dead_plays_are_moved_to_the_widest_gaps():
     assert cfg.reseeded(model, ds, ["hysteresis.weights"]) is None  # thresholds fixed: nothing to move
 
 
+def test_a_kept_re_seeded_fit_reports_the_whole_command():
+    """`_whole_run`: the result of a kept re-seeded fit counts the steps, accepted steps and seconds of every fit
+    run (a round not kept included), starts from the first fit's initial cost and starts, and keeps the cost
+    history of the fits it comes from, one after the other in steps."""
+    import dataclasses
+
+    from fitting.cli import _whole_run
+
+    @dataclasses.dataclass
+    class Fit:
+        steps: int
+        accepted_steps: int
+        seconds: float
+        initial_cost: float
+        starts: list | None
+        history: list
+        history_steps: list
+
+    first = Fit(10, 8, 2.0, 5.0, [{"cost": 1.0}, {"cost": 1.2}], [5.0, 2.0, 1.0], [0, 4, 10])
+    second = Fit(6, 5, 0.5, 1.5, None, [1.5, 0.9, 0.8], [0, 3, 6])  # re-seeded from the first, kept
+    third = Fit(4, 2, 0.25, 1.1, None, [1.1, 0.85], [0, 4])  # re-seeded again, not kept
+    out = _whole_run(second, first, [first, second, third], [first, second])
+    assert (out.steps, out.accepted_steps, out.seconds) == (20, 15, 2.75)
+    assert out.initial_cost == 5.0 and out.starts == first.starts
+    assert out.history == [5.0, 2.0, 1.0, 1.5, 0.9, 0.8] and out.history_steps == [0, 4, 10, 10, 13, 16]
+
+
 def test_the_command_line_refits_from_re_seeded_plays_and_keeps_the_better(tmp_path):
     """Twelve plays on a three-play plant: the fit leaves plays dead, the CLI fits again from them re-seeded and
     keeps the lower cost; result.json says what was done."""
