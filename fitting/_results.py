@@ -63,9 +63,9 @@ def lack_of_fit(metrics: dict[str, dict[str, dict]]) -> tuple[float, str, str] |
     """The largest `rmse_over_noise` of `metrics` (per experiment, per channel, as `FitResult.metrics`) over the
     records of `LACK_OF_FIT_MIN_SAMPLES` samples or more, with its experiment and channel, when it is
     `LACK_OF_FIT_RATIO` or more; else None."""
-    ratios = [(m.get("rmse_over_noise"), name, c) for name, chans in metrics.items() for c, m in chans.items()
-              if m.get("samples", 0) >= LACK_OF_FIT_MIN_SAMPLES]
-    worst = max(((r, name, c) for r, name, c in ratios if r is not None and math.isfinite(r)), default=None)
+    worst = max(((m["rmse_over_noise"], name, c) for name, chans in metrics.items() for c, m in chans.items()
+                 if m.get("samples", 0) >= LACK_OF_FIT_MIN_SAMPLES and m.get("rmse_over_noise") is not None
+                 and math.isfinite(m["rmse_over_noise"])), default=None)
     return worst if worst is not None and worst[0] >= LACK_OF_FIT_RATIO else None
 
 

@@ -621,7 +621,7 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
 
     from ._solver import HARD_FAILURES
 
-    first, fits, lineage = result, [result], [result]
+    fits = [result]
     rounds, interrupted, failure = [], False, None
     try:
         while len(rounds) < RESEED_ROUNDS:
@@ -638,7 +638,6 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             previous = result
             if kept:
                 result = second
-                lineage.append(second)
             rounds.append({"elements": moved, "cost_before": float(previous.cost), "cost_after": float(second.cost),
                            "steps": int(second.steps), "kept": bool(kept)})
             _info(f"re-seeded fit{' (interrupted)' if stopped else ''}: cost {second.cost:.6e} against "
@@ -655,8 +654,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     interrupted = interrupted or _pending_interrupt()
     if not rounds and not interrupted and failure is None:
         return result, None
-    if result is not first:
-        result = _whole_run(result, first, fits, lineage)
+    if result is not fits[0]:
+        result = _whole_run(result, fits)
     before = rounds[0]["cost_before"] if rounds else float(result.cost)
     info = {"elements": sum(r["elements"] for r in rounds), "cost_before": before, "cost_after": float(result.cost),
             "kept": any(r["kept"] for r in rounds), "rounds": rounds}
@@ -670,19 +669,19 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     return result, info
 
 
-def _whole_run(result, first, fits: list, lineage: list):
-    """`result` (the last of `lineage`, the fits each started from the one before) with the counts and the time of
-    all `fits` run, and `first`'s initial cost and starts; its history is `lineage`'s, one after the other (the cost
-    jumps up where plays were re-seeded), counted in the steps of the fits before."""
+def _whole_run(result, fits: list):
+    """`result`, one of `fits` (every fit `_reseed` ran, the first fit first), with the counts and the time of all
+    of them, and the first fit's initial cost and starts; its history is that of the fits up to `result` (each
+    started from the one before: a round follows only a kept one), one after the other (the cost jumps up where
+    plays were re-seeded), counted in the steps of the fits before."""
     history, history_steps, offset = [], [], 0
-    for f in fits:
-        if any(f is g for g in lineage):
-            history += list(f.history)
-            history_steps += [offset + int(s) for s in f.history_steps]
+    for f in fits[: next(i for i, f in enumerate(fits) if f is result) + 1]:
+        history += list(f.history)
+        history_steps += [offset + int(s) for s in f.history_steps]
         offset += int(f.steps)
     return dataclasses.replace(
         result, steps=sum(int(f.steps) for f in fits), accepted_steps=sum(int(f.accepted_steps) for f in fits),
-        seconds=sum(float(f.seconds) for f in fits), initial_cost=first.initial_cost, starts=first.starts,
+        seconds=sum(float(f.seconds) for f in fits), initial_cost=fits[0].initial_cost, starts=fits[0].starts,
         history=history, history_steps=history_steps)
 
 
@@ -771,14 +770,15 @@ def _cmd_fit(args) -> int:
             extra["cli"]["reseeded"] = reseeded
         hints = _lack_of_fit_hints(config, result)
         extra["cli"]["hints"] = hints
+        report = "\n".join([result.report(), *hints])
         _info(f"writing {out}", quiet)
         result.write_files(tmp, figures=not args.no_figures, extra=extra)
-        if hints:
-            fitting.files.atomic_write_text(tmp / "report.txt", "\n".join([result.report(), *hints]) + "\n")
+        if hints:  # the report with the command's lines
+            fitting.files.atomic_write_text(tmp / "report.txt", report + "\n")
         fitting.files.atomic_write_text(tmp / "config.toml", config.text)
         _check_interrupted()
         _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
-    _out("\n".join([result.report(), *hints]))
+    _out(report)
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
         return _interrupt_status()

@@ -270,7 +270,7 @@ def test_a_kept_re_seeded_fit_reports_the_whole_command():
     first = Fit(10, 8, 2.0, 5.0, [{"cost": 1.0}, {"cost": 1.2}], [5.0, 2.0, 1.0], [0, 4, 10])
     second = Fit(6, 5, 0.5, 1.5, None, [1.5, 0.9, 0.8], [0, 3, 6])  # re-seeded from the first, kept
     third = Fit(4, 2, 0.25, 1.1, None, [1.1, 0.85], [0, 4])  # re-seeded again, not kept
-    out = _whole_run(second, first, [first, second, third], [first, second])
+    out = _whole_run(second, [first, second, third])
     assert (out.steps, out.accepted_steps, out.seconds) == (20, 15, 2.75)
     assert out.initial_cost == 5.0 and out.starts == first.starts
     assert out.history == [5.0, 2.0, 1.0, 1.5, 0.9, 0.8] and out.history_steps == [0, 4, 10, 10, 13, 16]
