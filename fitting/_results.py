@@ -181,7 +181,8 @@ class FitResult:
         if self.starts:
             ok = sum(st["success"] for st in self.starts)
             lines.append(f"  multi-start: {len(self.starts)} starts, {ok} converged; final costs "
-                         + ", ".join(f"{st['cost']:.4e}{'*' if st['best'] else ''}" for st in self.starts)
+                         + ", ".join(f"{st['cost']:.4e}{'*' if st['best'] else ''}"
+                                     + (" (outpaced)" if st["code"] == "outpaced" else "") for st in self.starts)
                          + " (* reported)")
         lines.append("parameters (value ± standard error):")
         w = max(len(n) for n in self.parameter_names)

@@ -139,7 +139,10 @@ def solve(
       its own damping and verdict). The result is the start with the lowest final cost, with its verdict (a start
       that failed hard — non-finite, interrupted — only when all did); `result.starts` lists every start's cost and
       verdict (the reported start's after the stationarity test, as `result`). `None`: the problem's model.
-      Memory and time per step grow with the number of starts.
+      Memory and time per step grow with the number of running starts. A start stops early, `"outpaced"`, once
+      another has converged at a lower cost, it has had twice the steps that one needed, and at the rate its cost
+      fell over its last ten accepted steps it would not reach that cost within `max_steps` (where it would end
+      above it anyway; see `fitting._solver.outpaced`).
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
     - `max_steps`: steps per level; `rtol`, `atol`: optimistix's Cauchy termination tolerances on the parameters

@@ -46,6 +46,7 @@ class RESULTS(eqx.Enumeration):
     max_steps_reached = "the maximum number of steps was reached before convergence"
     stalled = "no decrease of the cost in many consecutive trial steps (stalled or diverging)"
     not_stationary = "stopped where the cost is not stationary"
+    outpaced = "stopped: another start converged at a lower cost that this one would not reach within max_steps"
     interrupted = "interrupted by the user (Ctrl-C)"
     nonfinite_initial = "the model's predictions or Jacobian are not finite at the initial parameters"
     nonfinite = "the Jacobian is not finite at an accepted point"
@@ -55,8 +56,9 @@ class RESULTS(eqx.Enumeration):
 SUCCESSES = ("successful", "converged_at_kink", "converged_zero_residual")
 """The codes of a converged fit."""
 
-HARD_FAILURES = ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed")
-"""The codes after which a start is not continued (to the next smoothing level, or past a kink)."""
+HARD_FAILURES = ("interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed", "outpaced")
+"""The codes after which a start is not continued (to the next smoothing level, or past a kink): the failures, and
+a start of a multi-start fit that another outpaced (`iterate`)."""
 
 
 def result_code(item) -> str:
@@ -469,7 +471,12 @@ class TrustRegion(AbstractNormalSolver):
 
 # How a start stands after a step, as a traced int: running, or why it stopped. The solver's own test and the
 # loop's flat-cost test are two ways to converge with different reasons; `PADDING` marks a fleet's filler rows.
-RUNNING, CONVERGED, CONVERGED_FLAT, STALLED, LINEAR_SOLVE_FAILED, NONFINITE, NONFINITE_INITIAL, PADDING = range(8)
+# `OUTPACED`: a start of a multi-start batch stopped by `iterate` (`outpaced`).
+RUNNING, CONVERGED, CONVERGED_FLAT, STALLED, LINEAR_SOLVE_FAILED, NONFINITE, NONFINITE_INITIAL, PADDING, OUTPACED = (
+    range(9))
+
+# accepted steps over which `outpaced` measures a running start's rate of decrease
+OUTPACE_WINDOW = 10
 
 
 class Bookkeeping(eqx.Module):
@@ -513,6 +520,43 @@ def advance(book: Bookkeeping, *, cost, take, ok, terminate, finite, ftol, windo
         RUNNING,
     ).astype(jnp.int32)
     return Bookkeeping(accepted, since, recent, code)
+
+
+def outpaced(histories, history_steps, codes, steps, step: int, max_steps: int, window: int = OUTPACE_WINDOW
+             ) -> dict[int, str]:
+    r"""The running starts of a multi-start batch that another has outpaced, each with the reason: a start has
+    converged (the solver's test or the flat-cost one) after $k^*$ steps at a cost $c^*$ below this start's $c$;
+    this start has had twice as many steps, $2k^*$; and at the rate its cost fell over its last `window` accepted
+    steps, $\rho = \ln(c_{-w}/c)$ per step taken since (rejected trials included), it would need $\ln(c/c^*)/\rho$
+    more steps to reach $c^*$: more than the `max_steps - step` left, where it would stop above $c^*$ anyway.
+    The projection alone is not safe: a start can crawl along a plateau and then drop into a lower basin (measured
+    on `experiments.plant_study`'s Bouc–Wen draw 8: one start converged after 117 steps, when the other was at 3.6
+    times its cost and falling by 0.1 % a step; 40 steps later it was below it, and it converged 1.3 % lower), so
+    every start gets twice the winner's steps first. `histories`, `history_steps`: each start's accepted costs and
+    the steps they were taken at (its initial cost at step 0); `codes`: the starts' bookkeeping codes after `step`;
+    `steps`: the step at which each start stopped (the current one for those running)."""
+    done = [j for j in range(len(codes)) if codes[j] in (CONVERGED, CONVERGED_FLAT)]
+    if not done:
+        return {}
+    winner = min(done, key=lambda j: histories[j][-1])
+    target, k_star = histories[winner][-1], int(steps[winner])
+    if step < 2 * k_star:
+        return {}
+    out = {}
+    for i in np.flatnonzero(np.asarray(codes) == RUNNING):
+        h, hs = histories[i], history_steps[i]
+        c = h[-1]
+        if not c > target or len(h) <= window:
+            continue
+        rate = float(np.log(h[-1 - window] / c)) / max(step - hs[-1 - window], 1)
+        need = float(np.log(c / target)) / rate if rate > 0 else np.inf
+        left = max_steps - step
+        if need > left:
+            out[int(i)] = (f"stopped after {step} steps: another start converged at cost {target:.6e} after "
+                           f"{k_star}; at the rate of its last {window} accepted steps this one (cost {c:.6e}) would "
+                           "need " + (f"about {need:.0f} more steps" if np.isfinite(need) else "indefinitely many "
+                                      "steps") + f" to reach it, more than the {left} left of max_steps = {max_steps}")
+    return out
 
 
 def verdict_of(code: int, *, solver, window: int, since: int, max_steps: int, interrupted: bool = False,
@@ -660,7 +704,8 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     Besides the solver's own test (`terminate`), a start ends by the loop's tests (`advance`): converged when its
     accepted steps no longer lower the cost (mean relative decrease over the last `window` below the solver's
     `ftol`: parameters drifting along a flat valley); `stalled` after `max_rejections` consecutive rejected trials;
-    `max_steps_reached`; `interrupted` on Ctrl-C (the last accepted point is kept). A trial point the model refuses
+    `max_steps_reached`; `interrupted` on Ctrl-C (the last accepted point is kept); `outpaced` when another start has
+    converged at a cost this one would not reach within `max_steps` (`outpaced`). A trial point the model refuses
     is a failed trial of that start only: the others take their step as usual. `piezojax`'s own checks are traced
     as NaN refusals (a non-finite trial); an `eqx.error_if` in a user's model raises for the whole batch, so it is
     caught and the starts' trials are run one by one to find the refused ones.
@@ -753,6 +798,14 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                 why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
                 verdicts[i] = verdict_of(int(codes[i]), solver=solver, window=window, since=int(since[i]),
                                          max_steps=max_steps, stalled_note=why)
+            if n_starts > 1:
+                beaten = outpaced(histories, history_steps, codes, steps, k, max_steps)
+                for i, reason in beaten.items():
+                    verdicts[i] = Verdict("outpaced", reason)
+                if beaten:
+                    mask = np.isin(np.arange(n_starts), list(beaten))
+                    book = eqx.tree_at(lambda b: b.code, book, jnp.where(jnp.asarray(mask), OUTPACED, book.code))
+                    codes = np.asarray(book.code)
             active = codes == RUNNING
             best = min(hh[-1] for hh in histories)
             meter_state = meter.step(meter_state, Progress(label, k, best, len(histories[0]) - 1, int(active.sum()),

@@ -171,6 +171,33 @@ def test_multistart_runs_each_start_as_alone_and_reports_the_best(data, method):
         fitting.solve(prob, starts=[], progress=False)
 
 
+def test_a_start_that_cannot_catch_up_is_outpaced(data):
+    """Two starts: one next to the truth converges in about ten steps; the other, from a negative w0, crawls towards
+    a worse minimum (left alone it converges there after about 50 steps). Once it has had twice the winner's steps
+    and its cost would not reach the winner's within max_steps at its recent rate, it stops ("outpaced"); the
+    result is the winner's, and the report marks the start."""
+    def constrained(m):
+        m = pj.constrain(m, lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
+        m = pj.constrain(m, lambda m: m.dynamics.zeta, pj.Positive)
+        return pj.constrain(m, lambda m: m.dynamics.omega, pj.Positive)
+
+    model = _model()
+    free = ["hysteresis.w0", "hysteresis.weights", "hysteresis.thresholds", "dynamics.omega", "dynamics.zeta"]
+    near = constrained(eqx.tree_at(lambda m: m.dynamics.omega, model, model.dynamics.omega * 1.05))
+    far = constrained(eqx.tree_at(lambda m: m.hysteresis.w0, model, jnp.asarray(-1.0)))
+    prob = fitting.Problem(constrained(model), data, free=free)
+    res = fitting.solve(prob, starts=[near, far], progress=False, max_steps=200)
+    winner, other = res.starts
+    assert winner["best"] and winner["success"] and res.cost == pytest.approx(winner["cost"], rel=1e-12)
+    assert other["code"] == "outpaced" and not other["success"] and other["cost"] > 10 * winner["cost"]
+    assert 2 * winner["steps"] <= other["steps"] < 40
+    assert f"stopped after {other['steps']} steps: another start converged" in other["reason"]
+    assert "(outpaced)" in res.report()
+    alone = fitting.solve(prob, starts=[far, far], progress=False, max_steps=200)  # nobody to outpace it
+    assert "outpaced" not in {st["code"] for st in alone.starts}
+    assert min(st["steps"] for st in alone.starts) > other["steps"]
+
+
 def test_trust_region_is_scipys_trf(data):
     # method="trust_region" is scipy's least_squares(method="trf", x_scale="jac") for unbounded problems: with the
     # same exact Jacobian, the same iterates (after 3 trials, and at convergence) and the same counts

@@ -43,7 +43,8 @@ def test_results_enumeration_names_every_code_with_a_message():
 
     codes = set(fitting.RESULTS._name_to_item)
     assert {"successful", "converged_at_kink", "converged_zero_residual", "max_steps_reached", "stalled",
-            "not_stationary", "interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed"} == codes
+            "not_stationary", "interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed",
+            "outpaced"} == codes
     assert set(SUCCESSES) | set(HARD_FAILURES) < codes
     for code in codes:
         item = getattr(fitting.RESULTS, code)
@@ -255,3 +256,28 @@ def test_fit_in_single_precision_warns(tmp_path):
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "ok float32" in proc.stdout
+
+
+def test_a_start_is_outpaced_only_when_it_cannot_catch_up():
+    """`outpaced`: a running start is stopped once another converged below it, it has had twice that one's steps,
+    and at the rate of its last ten accepted steps it would not reach that cost within max_steps."""
+    from fitting._solver import CONVERGED, RUNNING, outpaced
+
+    steps_done = list(range(0, 41, 2))  # 20 accepted steps, one every other step
+
+    def crawling(rate, top=2.0):  # a cost falling by `rate` (relative) per step
+        return [top * np.exp(-rate * k) for k in steps_done]
+
+    winner = ([5.0, 1.0], [0, 20])  # converged after 20 steps at cost 1
+    slow, fast = crawling(1e-4), crawling(0.05, top=9.0)  # fast: 9 e^{-2} = 1.22 at step 40, halving every 14 steps
+    histories = [winner[0], slow, fast, crawling(1e-4, top=0.9), slow[:5]]
+    steps_of = [winner[1], steps_done, steps_done, steps_done, steps_done[:5]]
+    codes = np.array([CONVERGED, RUNNING, RUNNING, RUNNING, RUNNING])
+    steps = np.array([20, 40, 40, 40, 40])
+    out = outpaced(histories, steps_of, codes, steps, 40, max_steps=500)
+    # the slow one needs ln 2 / 1e-4 ~ 6900 more steps; the fast one ~ 4; the third is below the winner; the last has
+    # too few accepted steps to judge
+    assert list(out) == [1] and "converged at cost 1.000000e+00 after 20" in out[1]
+    assert outpaced(histories, steps_of, codes, steps, 40, max_steps=10_000) == {}  # enough steps left for it
+    assert outpaced(histories, steps_of, codes, np.array([21, 39, 39, 39, 39]), 39, max_steps=500) == {}  # < 2 k*
+    assert outpaced(histories, steps_of, np.array([RUNNING] * 5), steps, 40, max_steps=500) == {}  # none converged
