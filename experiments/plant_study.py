@@ -286,7 +286,8 @@ def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_
     result = json.loads((data / "fit" / "result.json").read_text())
     row["verdict"] = result.get("code", "?")
     reseeded = result.get("cli", {}).get("reseeded")
-    row["reseeded"] = None if reseeded is None else f"{reseeded['elements']} {'kept' if reseeded['kept'] else 'no'}"
+    row["reseeded"] = None if reseeded is None else (
+        f"{reseeded['elements']} plays, {reseeded.get('lags', 0)} lags, {'kept' if reseeded['kept'] else 'not kept'}")
     train_rmse = [m["displacement"]["rmse"] for m in result["metrics"].values()]
     row["train"] = float(np.sqrt(np.mean(np.square(train_rmse)))) / sigma
     code, text = _cli(["predict", str(data / "fit"), *test, "--out", str(data / "predict")])

@@ -349,6 +349,10 @@ class BlockKind:
     - `empty`: the kind is "no block" (`"none"`).
     - `structures`: creep only: the structures it may be used in (`"series"`, `"parallel"`), the first the default;
       `structure_note`: the error message for another structure (default: the allowed ones).
+    - `lag_gains`: for a block of first-order lags (its `time_constants`) whose output is linear in their gains $c_j$
+      given the rest of the model: the parameter that holds the gains (through `gains` / `from_gains`), so that
+      `ModelConfig.relocated_lags` can move the lags after a fit; `max_total_gain`: a bound on the gains' sum (a
+      lag creep's fractions stay below 1). `None` (default): the kind's lags are not moved.
     """
 
     table: ClassVar[str]
@@ -357,6 +361,8 @@ class BlockKind:
     empty: ClassVar[bool] = False
     structures: ClassVar[tuple[str, ...]] = ("parallel", "series")
     structure_note: ClassVar[str] = ""
+    lag_gains: ClassVar[str | None] = None
+    max_total_gain: ClassVar[float] = np.inf
 
     def parse(self, t: ConfigTable, raw: Mapping) -> dict:
         """The validated options of the table `t` (`raw`: the whole CONFIG, for keys that depend on other tables).
@@ -410,6 +416,15 @@ class BlockKind:
         """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
         act, or `None` when none is dead or the kind does not re-seed (default). `place`: see `_reseed_plays`."""
         return None
+
+    def gains(self, values):
+        """The lags' gains $c_j$ from the values of the parameter `lag_gains` (default: the values themselves);
+        elementwise, in NumPy or JAX."""
+        return values
+
+    def from_gains(self, gains):
+        """The values of the parameter `lag_gains` for the gains $c_j$ (the inverse of `gains`); elementwise."""
+        return gains
 
     def optional_start(self, o: dict, data: StartData) -> dict:
         """Values for the parameters a forward simulation does not need, when only those are missing (default:
@@ -857,6 +872,13 @@ class KelvinVoigtKind(BlockKind):
 
     table, name = "creep", "kelvin_voigt"
     keys = ("order", "stiffnesses", "time_constants")
+    lag_gains = "stiffnesses"  # the compliances 1/k_j are the gains
+
+    def gains(self, values):
+        return 1.0 / values
+
+    def from_gains(self, gains):
+        return 1.0 / gains
 
     def parse(self, t, raw):
         n, (k, tau) = t.sized_vectors("order", 1, MAX_CREEP_ORDER, {"stiffnesses": dict(positive=True),
@@ -935,6 +957,7 @@ class LagKind(BlockKind):
 
     table, name = "creep", "lag"
     keys = ("lags", "fractions", "time_constants")
+    lag_gains, max_total_gain = "fractions", 1.0
     structures = ("series",)
     structure_note = ("a 'lag' creep is DC-normalised (its gain is 1): it belongs in series after the hysteresis; "
                       "use 'kelvin_voigt' for creep in parallel")

@@ -607,13 +607,15 @@ def _check_memory(config, dataset, num_free: int) -> None:
 def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     """More fits from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the fit
     left without weight, above the largest voltage, or on the threshold of another, placed where the residual
-    needs them), each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered
-    the cost by more than `RESEED_GAIN` and left elements dead again (plays pulled onto one kink of the data's
-    reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
+    needs them) and its creep lags moved where time constants elsewhere fit better (`ModelConfig.relocated_lags`),
+    each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered the cost by
+    more than `RESEED_GAIN` and left elements dead or lags misplaced again (plays pulled onto one kink of the
+    data's reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
     re-seeded fit's last accepted point is kept if its cost is lower, and the result returned has code
     `"interrupted"` (its reason names the verdict of the fit kept). Returns the result kept and, for
-    `result.json`, what was done (`None` when nothing was dead; `"interrupted": True` when an interrupt ended it;
-    `"error"` when a round raised: the fit so far is kept and the error reported as a warning). A re-seeded result
+    `result.json`, what was done (`None` when nothing was dead or misplaced; per round the plays re-seeded,
+    `"elements"`, and the lags moved, `"lags"`; `"interrupted": True` when an interrupt ended it; `"error"` when a
+    round raised: the fit so far is kept and the error reported as a warning). A re-seeded result
     kept reports the whole command's fitting: its steps, accepted steps and seconds summed over the first fit and
     every re-seeded one, the first fit's initial cost and starts, and the cost history of the fits it comes from
     (`_whole_run`)."""
@@ -626,11 +628,14 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     try:
         while len(rounds) < RESEED_ROUNDS:
             again = config.reseeded(result.model, dataset, free, fit_args)
-            if again is None:
+            model, moved = again if again is not None else (result.model, 0)
+            relocated = config.relocated_lags(model, dataset, free, fit_args)
+            model, lags = relocated if relocated is not None else (model, 0)
+            if not moved and not lags:
                 break
-            model, moved = again
-            _info(f"{moved} dead or coinciding hysteresis element(s) re-seeded where the residual needs them; "
-                  "fitting again", quiet)
+            what = [f"{moved} dead or coinciding hysteresis element(s) re-seeded"] if moved else []
+            what += [f"{lags} creep lag(s) moved to other time constants"] if lags else []
+            _info(f"{' and '.join(what)} where the residual needs them; fitting again", quiet)
             second = fitting.fit(model, dataset, **fit_args)
             fits.append(second)
             stopped = second.code == "interrupted"
@@ -638,8 +643,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             previous = result
             if kept:
                 result = second
-            rounds.append({"elements": moved, "cost_before": float(previous.cost), "cost_after": float(second.cost),
-                           "steps": int(second.steps), "kept": bool(kept)})
+            rounds.append({"elements": moved, "lags": lags, "cost_before": float(previous.cost),
+                           "cost_after": float(second.cost), "steps": int(second.steps), "kept": bool(kept)})
             _info(f"re-seeded fit{' (interrupted)' if stopped else ''}: cost {second.cost:.6e} against "
                   f"{previous.cost:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
             interrupted = stopped
@@ -649,7 +654,8 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
         interrupted = True
     except Exception as e:  # noqa: BLE001 - a finished fit is never lost to its optional refinement
         failure = f"{type(e).__name__}: {' '.join(str(e).split())}"
-        _info(f"warning: re-seeding the dead plays failed ({failure}); the fit so far is kept")
+        _info(f"warning: re-seeding the dead plays or moving the creep lags failed ({failure}); the fit so far is "
+              "kept")
     # an interrupt that was swallowed on its way (see `_check_interrupted`) or turned into another error
     interrupted = interrupted or _pending_interrupt()
     if not rounds and not interrupted and failure is None:
@@ -657,13 +663,15 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     if result is not fits[0]:
         result = _whole_run(result, fits)
     before = rounds[0]["cost_before"] if rounds else float(result.cost)
-    info = {"elements": sum(r["elements"] for r in rounds), "cost_before": before, "cost_after": float(result.cost),
-            "kept": any(r["kept"] for r in rounds), "rounds": rounds}
+    info = {"elements": sum(r["elements"] for r in rounds), "lags": sum(r["lags"] for r in rounds),
+            "cost_before": before, "cost_after": float(result.cost), "kept": any(r["kept"] for r in rounds),
+            "rounds": rounds}
     if interrupted:
         info["interrupted"] = True
         if result.code != "interrupted":  # the run was interrupted, whatever the verdict of the fit kept
             result = dataclasses.replace(result, success=False, code="interrupted", reason=(
-                f"interrupted while re-seeding dead plays; the best fit so far ({result.code}: {result.reason})"))
+                f"interrupted while re-seeding dead plays or moving creep lags; the best fit so far ({result.code}: "
+                f"{result.reason})"))
     if failure is not None:
         info["error"] = failure
     return result, info

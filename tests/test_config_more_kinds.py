@@ -1,6 +1,7 @@
 """The play, LTI-creep, Bouc–Wen-oscillator and electromechanical kinds and the observers' offsets: configured,
 started from data, fitted (parameter recovery on plants simulated with known values) and run through the CLI."""
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -409,3 +410,88 @@ def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, mo
     assert again["code"] in result["reason"]  # the same fit as the interrupted run kept
     assert again["cli"]["reseeded"]["error"] == "RuntimeError: placement broke"
     assert again["cost"] == result["cost"]
+
+
+# ------------------------------------------------------------------------------------------ creep lags relocated
+
+
+def _creep_plant(creep):
+    """PI -> `creep` in series, 2 s of held steps and a triangle at 1 kHz, 0.1 % noise."""
+    t = np.arange(2000) / 1000.0
+    v = np.where(t < 1.0, np.repeat([0.0, 80.0, 20.0, 60.0, 0.0], [100, 300, 300, 300, 1000]),
+                 100 * (1 - np.abs(1 - 2 * ((t - 1.0) % 0.5) / 0.5)))
+    truth = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 0.1]), jnp.array([10.0, 30.0, 60.0]), w0=0.5),
+                        creep, structure="series")
+    y = np.asarray(truth.simulate(jnp.asarray(v), 1e-3).displacement)
+    y = y + 1e-3 * np.ptp(y) * np.random.default_rng(5).standard_normal(y.size)
+    return truth, fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y)])
+
+
+@pytest.mark.parametrize("kind", ["kelvin_voigt", "lag"])
+def test_creep_lags_move_to_the_time_constants_the_residual_needs(kind):
+    """A model whose two creep lags sit together at 0.3 s where the plant's are at 0.02 s and 0.5 s (the rest of
+    the model exact): the search moves both to within one grid step (a factor 1.22) of the truth, with gains that
+    lower the cost; at the truth itself nothing moves."""
+    from fitting._config import _lag_search
+
+    taus = jnp.array([0.02, 0.5])
+    if kind == "kelvin_voigt":
+        creep, wrong = pj.KelvinVoigtCreep(jnp.array([10.0, 5.0]), taus, k0=1.0), dict(stiffnesses=[6.0, 7.0])
+        table = 'kind = "kelvin_voigt"\nstructure = "series"\norder = 2'
+    else:
+        creep, wrong = pj.LagCreep(jnp.array([0.1, 0.15]), taus), dict(fractions=[0.12, 0.1])
+        table = 'kind = "lag"\nlags = 2'
+    truth, ds = _creep_plant(creep)
+    cfg = parse_config(f'[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n[creep]\n{table}\n'
+                       '[state]\noffset = false\n', "creep.toml")
+    free = cfg.fit_free(["displacement"])
+    args = {"predictor": cfg.predictor(), "targets": None}
+    (name, values), = wrong.items()
+    fitted = eqx.tree_at(lambda m: (getattr(m.creep, name), m.creep.time_constants), truth,
+                         (jnp.array(values), jnp.array([0.28, 0.32])))
+    model, moved = cfg.relocated_lags(cfg._constrain(fitted), ds, free, args)
+    assert moved == 2
+    new = pj.unwrap(model).creep
+    assert type(model.creep.time_constants) is type(cfg._constrain(fitted).creep.time_constants)  # reparametrised
+    ratio = np.asarray(new.time_constants) / np.asarray(taus)
+    assert np.all((ratio > 1 / 1.22) & (ratio < 1.22)), new.time_constants
+    cost = {}
+    for label, m in (("before", fitted), ("after", pj.unwrap(model))):
+        problem = fitting.Problem(m, ds, predictor=args["predictor"], free=free)
+        cost[label] = float(np.sum(np.square(np.asarray(problem.residuals(problem.u0)))))
+    assert cost["after"] < 0.2 * cost["before"]
+    assert cfg.relocated_lags(cfg._constrain(truth), ds, free, args) is None
+    # the search itself: the truth's time constants are on no grid point, so a grid set fits worse than they do
+    get = lambda m: m.creep  # noqa: E731
+    assert _lag_search(truth, get, "creep", cfg.kind("creep"), ds, args) is None
+    # time constants held: nothing to move
+    assert cfg.relocated_lags(cfg._constrain(fitted), ds, [p for p in free if p != "creep.time_constants"],
+                              args) is None
+
+
+def test_the_command_line_moves_misplaced_creep_lags_and_refits(tmp_path):
+    """A fit stopped after a few steps from the plant's hysteresis and lags placed together at 0.28 and 0.32 s (the
+    plant's: 0.02 and 0.5 s): the command moves them, fits again and keeps the lower cost; result.json counts the
+    lags moved."""
+    import json
+
+    from fitting.cli import main
+
+    _, ds = _creep_plant(pj.KelvinVoigtCreep(jnp.array([10.0, 5.0]), jnp.array([0.02, 0.5]), k0=1.0))
+    e = ds[0]
+    np.savetxt(tmp_path / "d.csv", np.column_stack([e.t, e.v_in, 1e-6 * e["displacement"]]), delimiter=",",
+               header="t,v_in,displacement", comments="")
+    (tmp_path / "m.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\nw0 = 0.5e-6\n'
+                                     'weights = [0.3e-6, 0.2e-6, 0.1e-6]\nthresholds = [10.0, 30.0, 60.0]\n'
+                                     '[creep]\nkind = "kelvin_voigt"\nstructure = "series"\norder = 2\n'
+                                     'stiffnesses = [6.0, 7.0]\ntime_constants = [0.28, 0.32]\n'
+                                     '[state]\noffset = false\n')
+    assert main(["fit", str(tmp_path / "m.toml"), str(tmp_path / "d.csv"), "--out", str(tmp_path / "fit"),
+                 "--quiet", "--no-figures", "--max-steps", "3"]) in (0, 1)
+    result = json.loads((tmp_path / "fit" / "result.json").read_text())
+    info = result["cli"]["reseeded"]
+    assert info["rounds"][0]["lags"] >= 1 and info["lags"] == sum(r["lags"] for r in info["rounds"])
+    assert info["kept"] and info["cost_after"] < 0.5 * info["cost_before"]
+    assert result["cost"] == pytest.approx(info["cost_after"], rel=1e-12)
+    taus = [result["parameters"][f"creep.time_constants[{i}]"]["value"] for i in range(2)]
+    assert 0.01 < taus[0] < 0.04 and 0.25 < taus[1] < 1.0  # near the plant's 0.02 and 0.5 s
