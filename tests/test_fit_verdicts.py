@@ -198,3 +198,20 @@ def test_a_whole_scale_redundancy_leaves_every_parameter_it_moves_undetermined()
     for n in rest:
         se = both.std_errors[both.parameter_names.index(n)]
         assert se == pytest.approx(fixed.std_errors[fixed.parameter_names.index(n)], rel=1e-2)
+
+
+def test_the_gradient_test_ignores_a_column_lost_to_underflow():
+    """`max_gradient_cosine`: a parameter whose Jacobian column has underflowed (a damping driven to 1e-199, its
+    squared norm 0 or denormal in J^T J, a rounding-level J^T r left) counts as a zero column, not as a cosine of inf;
+    the others are MINPACK's cosines, and a Jacobian that is not finite still gives NaN."""
+    from fitting._stationarity import max_gradient_cosine
+
+    rng = np.random.default_rng(0)
+    j = rng.standard_normal((50, 3))
+    j[:, 2] = 1e-162  # squared column norm 5e-323: denormal
+    r = rng.standard_normal(50)
+    jtj, jtr = j.T @ j, j.T @ r
+    jtj[2, 2] = 0.0  # or underflowed to 0 while J^T r kept a digit
+    expected = np.max(np.abs(jtr[:2]) / (np.sqrt(np.diag(jtj)[:2]) * np.linalg.norm(r)))
+    assert max_gradient_cosine(r, jtr, jtj) == pytest.approx(expected, rel=1e-12)
+    assert np.isnan(max_gradient_cosine(r, np.full(3, np.nan), np.full((3, 3), np.nan)))
