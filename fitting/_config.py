@@ -486,7 +486,9 @@ def _lag_search(plain, get, where: str, kind: BlockKind, dataset, fit_args: Mapp
     lags as the block has is scored (by single swaps from the fitted set when there are more than
     `LAG_COMBINATIONS`), keeping those whose gains come out positive (summing below `kind.max_total_gain`); the best is
     returned as `(gains, time_constants, moved)` (`moved`: lags not at a fitted time constant) when it lowers the
-    sum of squares by more than `RELOCATE_GAIN` of it and more than $25\hat\sigma^2$ (a regressor of pure noise
+    sum of squares — the fit's, or the fitted lags' with their gains refitted where that is lower, so that what
+    refitting the gains alone would gain does not count as a move — by more than `RELOCATE_GAIN` of it and more than
+    $25\hat\sigma^2$ (a regressor of pure noise
     explains $\hat\sigma^2$; $\hat\sigma^2$ from what no combination of the lags explains)."""
     from itertools import combinations
 
@@ -507,7 +509,12 @@ def _lag_search(plain, get, where: str, kind: BlockKind, dataset, fit_args: Mapp
     samples = sum(e.n for e in dataset)
     grid = np.geomspace(5 * dt, longest, int(min(LAG_GRID, max(8, RESEED_MEMORY // (8 * samples) - m))))
     grid = grid[np.min(np.abs(np.log(grid[:, None] / tau[None, :])), axis=1) > 1e-3]
-    eps = 1e-9 * max(float(np.sum(c_now)), TINY)
+    # candidates at a negligible gain, within a bounded sum (a lag creep's fractions summing to nearly 1)
+    room = kind.max_total_gain - float(np.sum(c_now))
+    eps = 1e-9 * max(float(np.sum(c_now)), TINY) if not np.isfinite(room) else min(
+        1e-9 * max(float(np.sum(c_now)), TINY), 0.5 * room / max(grid.size, 1))
+    if not eps > 0:
+        return None
     c0 = np.r_[c_now, np.full(grid.size, eps)]
     taus = np.r_[tau, grid]
     trial = eqx.tree_at(lambda b: (getattr(b, name), b.time_constants), block,
@@ -539,6 +546,8 @@ def _lag_search(plain, get, where: str, kind: BlockKind, dataset, fit_args: Mapp
 
     fitted = np.arange(m)
     sse_now = base + 2 * float(gb[fitted] @ c_now) + float(c_now @ h[np.ix_(fitted, fitted)] @ c_now)
+    refitted = float(sse(fitted[None])[0][0])  # the fitted lags with their gains refitted: not a move
+    reference = min(sse_now, refitted) if np.isfinite(refitted) else sse_now
     if math.comb(c0.size, m) <= LAG_COMBINATIONS:
         sets = np.array(list(combinations(range(c0.size), m)))
         scores, gains = sse(sets)
@@ -558,7 +567,7 @@ def _lag_search(plain, get, where: str, kind: BlockKind, dataset, fit_args: Mapp
     unexplained = max(base - float(gn @ np.linalg.lstsq(hn, gn, rcond=None)[0]), 0.0)
     sigma2 = unexplained / max(problem.num_residuals - c0.size, 1)
     moved = int(np.sum(best >= m))
-    if not moved or not sse_now - best_sse > max(RELOCATE_GAIN * sse_now, 25 * sigma2):
+    if not moved or not reference - best_sse > max(RELOCATE_GAIN * reference, 25 * sigma2):
         return None
     order = np.argsort(taus[best])
     return best_gains[order], taus[best][order], moved

@@ -103,11 +103,14 @@ SETTLED_WINDOW = 50
 def _settled(verdict: Verdict, run, m: int, p: int) -> Verdict:
     r"""A start stopped by `max_steps` (`verdict`, of its last `run`) whose cost fell over its last `SETTLED_WINDOW`
     accepted steps by less than moving one parameter by one standard error changes it, $\hat\sigma^2/2 =
-    \text{cost}/(m - p)$ (the bound of `fitting._stationarity.kink_ftol`), has converged in practice: another as many
-    steps at that rate would change nothing the data can resolve. Measured on `experiments.plant_study`'s PI draw 1:
-    a re-seeded fit at 1.00x the noise crawled on for 500 steps, its cost falling by 5e-6 of it in the last 60 (a
-    nearly dead play's threshold, 36 ± 35 V, drifting), against a resolution of 3e-5; it ended "max_steps_reached"
-    and `piezojax fit` exited 1. Other verdicts, and runs with fewer accepted steps, are returned unchanged."""
+    \text{cost}/(m - p)$ (the data-resolution bound of `fitting._stationarity.kink_ftol`, without its 1e-5 floor),
+    has converged in practice: another as many steps at that rate would change nothing the data can resolve. As
+    after a kink restart that gains less than that, the verdict holds whatever the gradient test says (it is applied
+    after it, and such a start is not restarted past kinks); the `levels` entry keeps the run's own reason.
+    Measured on `experiments.plant_study`'s PI draw 1: a re-seeded fit at 1.00x the noise crawled on for 500 steps,
+    its cost falling by 5e-6 of it in the last 60 (a nearly dead play's threshold, 36 ± 35 V, drifting), against a
+    resolution of 3e-5; it ended "max_steps_reached" and `piezojax fit` exited 1. Other verdicts, and runs with
+    fewer accepted steps, are returned unchanged."""
     h = run.history
     if verdict.code != "max_steps_reached" or len(h) <= SETTLED_WINDOW:
         return verdict
@@ -162,10 +165,11 @@ def solve(
       its own damping and verdict). The result is the start with the lowest final cost, with its verdict (a start
       that failed hard — non-finite, interrupted — only when all did); `result.starts` lists every start's cost and
       verdict (the reported start's after the stationarity test, as `result`). `None`: the problem's model.
-      Memory and time per step grow with the number of running starts. A start stops early, `"outpaced"`, once
-      another has converged at a lower cost, it has had twice the steps that one needed, and at the rate its cost
-      fell over its last ten accepted steps it would not reach that cost within `max_steps` (where it would end
-      above it anyway; see `fitting._solver.outpaced`).
+      Memory and time per step grow with the number of starts (on XLA:CPU a stopped start is no longer
+      linearised, so there a step costs what the running starts cost). At the last smoothing level a start stops
+      early, `"outpaced"`, once another has converged at a lower cost, it has had twice the steps that one needed,
+      and at the rate its cost fell over its last ten accepted steps it would not reach that cost within
+      `max_steps` (where it would end above it anyway; see `fitting._solver.outpaced`).
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
     - `max_steps`: steps per level (a start stopped by them whose cost fell by less than a one-standard-error change
@@ -252,12 +256,13 @@ def solve(
     per_start: list[list] = [[] for _ in range(u.shape[0])]
     level = problem
     try:
-        for s in levels:
+        for n_level, s in enumerate(levels):
             if s is not None:
                 frozen = set_smoothing(frozen, s)
             label = f"[smoothing {s:g}] " if s is not None else ""
             next_level = problem.with_frozen(frozen)
-            runs = iterate(solver, next_level.core, u, max_steps=max_steps, meter=meter, label=label)
+            runs = iterate(solver, next_level.core, u, max_steps=max_steps, meter=meter, label=label,
+                           outpace=n_level == len(levels) - 1)
             level = next_level
             for i, run in enumerate(runs):
                 per_start[i].append((s, run))

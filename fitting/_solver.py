@@ -540,7 +540,7 @@ def outpaced(histories, history_steps, codes, steps, step: int, max_steps: int, 
         return {}
     winner = min(done, key=lambda j: histories[j][-1])
     target, k_star = histories[winner][-1], int(steps[winner])
-    if step < 2 * k_star:
+    if step < 2 * k_star or step >= max_steps:  # at the last step a running start ends `max_steps_reached` anyway
         return {}
     out = {}
     for i in np.flatnonzero(np.asarray(codes) == RUNNING):
@@ -695,7 +695,8 @@ def _linearise_starts(core: ProblemCore, y, which: np.ndarray, lin: Linearisatio
 
 
 def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: int,
-            meter: AbstractProgressMeter, label: str = "", max_rejections: int = 40, window: int = 5) -> list[Run]:
+            meter: AbstractProgressMeter, label: str = "", max_rejections: int = 40, window: int = 5,
+            outpace: bool = True) -> list[Run]:
     r"""Run `solver` from every start in `u0` (shape `(starts, p)`) at once, stepped from Python (progress meter,
     Ctrl-C): the starts run in lockstep (their trials under `vmap`; their linearisations one at a time on
     XLA:CPU, see `_linearise_starts`), a finished start is frozen, and each has its own state, history and
@@ -705,7 +706,9 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     accepted steps no longer lower the cost (mean relative decrease over the last `window` below the solver's
     `ftol`: parameters drifting along a flat valley); `stalled` after `max_rejections` consecutive rejected trials;
     `max_steps_reached`; `interrupted` on Ctrl-C (the last accepted point is kept); `outpaced` when another start has
-    converged at a cost this one would not reach within `max_steps` (`outpaced`). A trial point the model refuses
+    converged at a cost this one would not reach within `max_steps` (`outpaced`; only with `outpace`: `solve` tests
+    it at the last smoothing level alone, since a start stopped earlier would be fitted again at the next level).
+    A trial point the model refuses
     is a failed trial of that start only: the others take their step as usual. `piezojax`'s own checks are traced
     as NaN refusals (a non-finite trial); an `eqx.error_if` in a user's model raises for the whole batch, so it is
     caught and the starts' trials are run one by one to find the refused ones.
@@ -798,7 +801,7 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                 why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
                 verdicts[i] = verdict_of(int(codes[i]), solver=solver, window=window, since=int(since[i]),
                                          max_steps=max_steps, stalled_note=why)
-            if n_starts > 1:
+            if n_starts > 1 and outpace:
                 beaten = outpaced(histories, history_steps, codes, steps, k, max_steps)
                 for i, reason in beaten.items():
                     verdicts[i] = Verdict("outpaced", reason)

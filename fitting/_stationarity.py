@@ -100,11 +100,13 @@ def max_gradient_cosine(r, jtr, jtj) -> float:
     damping driven to 3e-199 on a record that never excites it gave a cosine of inf)."""
     r, jtr, jtj = (np.asarray(x) for x in (r, jtr, jtj))
     diag = np.clip(np.diag(jtj), 0.0, None)
-    live = diag > 1e-30 * (diag.max() if diag.size else 0.0)
+    finite = np.isfinite(diag)
+    # a column is dropped only for being tiny next to the largest finite one; a non-finite one keeps its NaN or inf
+    lost = finite & (diag <= 1e-30 * np.max(diag[finite], initial=0.0))
     col_norms = np.sqrt(diag)
     rnorm = np.sqrt(np.sum(r**2))
     with np.errstate(invalid="ignore", divide="ignore"):
-        cosines = np.where(live, np.abs(jtr) / (col_norms * rnorm), np.where(np.isnan(jtr), np.nan, 0.0))
+        cosines = np.where(lost, np.where(np.isnan(jtr), np.nan, 0.0), np.abs(jtr) / (col_norms * rnorm))
     if not (cosines.size and rnorm > 0):
         return 0.0
     return float(np.nanmax(cosines)) if np.any(~np.isnan(cosines)) else float("nan")  # nan: no Jacobian

@@ -629,7 +629,14 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
         while len(rounds) < RESEED_ROUNDS:
             again = config.reseeded(result.model, dataset, free, fit_args)
             model, moved = again if again is not None else (result.model, 0)
-            relocated = config.relocated_lags(model, dataset, free, fit_args)
+            try:  # a failure here must not discard the plays re-seeded above
+                relocated = config.relocated_lags(model, dataset, free, fit_args)
+            except KeyboardInterrupt:
+                raise
+            except Exception as e:  # noqa: BLE001 - an optional refinement; the fit so far stands
+                relocated = None
+                _info(f"warning: moving the creep lags failed ({type(e).__name__}: {' '.join(str(e).split())}); "
+                      "they stay where the fit left them")
             model, lags = relocated if relocated is not None else (model, 0)
             if not moved and not lags:
                 break

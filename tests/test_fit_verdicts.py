@@ -215,3 +215,7 @@ def test_the_gradient_test_ignores_a_column_lost_to_underflow():
     expected = np.max(np.abs(jtr[:2]) / (np.sqrt(np.diag(jtj)[:2]) * np.linalg.norm(r)))
     assert max_gradient_cosine(r, jtr, jtj) == pytest.approx(expected, rel=1e-12)
     assert np.isnan(max_gradient_cosine(r, np.full(3, np.nan), np.full((3, 3), np.nan)))
+    # one non-finite column does not switch the test off for the others
+    bad = jtj.copy()
+    bad[2, 2], bad_g = np.inf, jtr.copy()
+    assert max_gradient_cosine(r, bad_g, bad) == pytest.approx(expected, rel=1e-12)

@@ -281,6 +281,7 @@ def test_a_start_is_outpaced_only_when_it_cannot_catch_up():
     assert outpaced(histories, steps_of, codes, steps, 40, max_steps=10_000) == {}  # enough steps left for it
     assert outpaced(histories, steps_of, codes, np.array([21, 39, 39, 39, 39]), 39, max_steps=500) == {}  # < 2 k*
     assert outpaced(histories, steps_of, np.array([RUNNING] * 5), steps, 40, max_steps=500) == {}  # none converged
+    assert outpaced(histories, steps_of, codes, steps, 40, max_steps=40) == {}  # the last step: max_steps_reached
 
 
 def test_a_fit_at_max_steps_that_no_longer_gains_what_the_data_resolve_has_converged():
