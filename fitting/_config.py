@@ -309,8 +309,7 @@ class ModelConfig:
         if "hysteresis" not in self._block_tables() or self.hysteresis_kind.empty:
             return None
         where = self._block_path("hysteresis")
-        if not all(any(f"{where}.{a}" == p or f"{where}.{a}".startswith(p + ".") for p in free)
-                   for a in ("weights", "thresholds")):
+        if not _all_fitted(where, ("weights", "thresholds"), free):
             return None
         plain = pj.unwrap(model)
         get = _getter(where.split("."))
@@ -345,8 +344,7 @@ class ModelConfig:
         if kind.lag_gains is None:
             return None
         where = self._block_path("creep")
-        if not all(any(f"{where}.{a}" == p or f"{where}.{a}".startswith(p + ".") for p in free)
-                   for a in (kind.lag_gains, "time_constants")):
+        if not _all_fitted(where, (kind.lag_gains, "time_constants"), free):
             return None
         plain = pj.unwrap(model)
         get = _getter(where.split("."))
@@ -571,6 +569,13 @@ def _lag_search(plain, get, where: str, kind: BlockKind, dataset, fit_args: Mapp
         return None
     order = np.argsort(taus[best])
     return best_gains[order], taus[best][order], moved
+
+
+def _all_fitted(where: str, attrs, free) -> bool:
+    """Whether `free` selects every attribute `attrs` of the block at path `where`."""
+    from ._problem import matches
+
+    return all(any(matches(f"{where}.{a}", p) for p in free) for a in attrs)
 
 
 def _getter(path: list[str]):
