@@ -16,7 +16,8 @@ Differences from `fitting.solve` (one problem, stepped from Python): every itera
 accepted or not (under `vmap` both branches of a choice run anyway; a rejected trial of one actuator costs what an
 accepted one does), and there is no smoothing continuation, multi-start or probing past kinks: an actuator whose
 steps end at a kink of an exact hysteresis operator ends `"successful"` by the window test or `"stalled"`; refit it
-with `fitting.solve` (starting from `result[i].params`) for those.
+with `fitting.solve` (starting from `result[i].params`) for those. As in `fitting.solve`, an actuator stopped by
+`max_steps` while its cost no longer falls by what its data resolve is converged in practice (`settled`).
 """
 
 import dataclasses
@@ -36,7 +37,7 @@ from piezojax._checks import PiezojaxValueError, refusals_as_nan
 
 from ._problem import Problem, ProblemCore, channel_weights, jacobian_scales, model_error, over_starts
 from ._results import FitResult, summarise
-from ._solve import PrecisionWarning, caller_level, make_solver
+from ._solve import SETTLED_WINDOW, PrecisionWarning, caller_level, make_solver, settled
 from ._solver import (
     PADDING,
     RUNNING,
@@ -60,6 +61,7 @@ class _Carry(eqx.Module):
     state: Any  # the solver's state
     steps: jax.Array
     book: Bookkeeping  # the loop's stopping tests, as `fitting.iterate`'s
+    tail: jax.Array  # the last `SETTLED_WINDOW + 1` accepted costs, oldest first (the first repeated): `settled`
 
 
 def _select(pred, new, old):
@@ -76,7 +78,8 @@ def _init_one(solver: AbstractNormalSolver, window: int, core: ProblemCore, u, p
     lin, finite = _linearise_one(core, u)
     book = begin(lin.cost, finite, window)
     book = eqx.tree_at(lambda b: b.code, book, jnp.where(padding, PADDING, book.code).astype(jnp.int32))
-    return _Carry(u, lin, solver.init(u, lin), jnp.zeros((), jnp.int32), book)
+    tail = jnp.full((SETTLED_WINDOW + 1,), lin.cost)
+    return _Carry(u, lin, solver.init(u, lin), jnp.zeros((), jnp.int32), book, tail)
 
 
 def _step_one(solver: AbstractNormalSolver, window: int, max_rejections: int, core: ProblemCore, c: _Carry) -> _Carry:
@@ -95,7 +98,8 @@ def _step_one(solver: AbstractNormalSolver, window: int, max_rejections: int, co
     lin = _select(take, lin_t, c.lin)
     state = _select(active, new_state, c.state)
     state = _select(take, solver.relinearise(state, lin), state)
-    return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), book)
+    tail = jnp.where(take, jnp.concatenate([c.tail[1:], jnp.asarray(trial.cost, c.tail.dtype)[None]]), c.tail)
+    return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), book, tail)
 
 
 def _fleet_map(fn):
@@ -306,8 +310,10 @@ def fit_fleet(
       `"range"`) is an error naming it, as `fitting.fit` would refuse it: leave it out of the fleet.
     - `method`, `max_steps`, `rtol`, `atol`, `ftol`, `linear_solver`: the solver, as for `fitting.solve`; each
       actuator also ends converged when its cost decreased by less than `ftol` relative per accepted step over the
-      last five, `"stalled"` after `max_rejections` consecutive rejected trials. A solver instance must evaluate the
-      residuals once per step, at its trial point (the built-in ones do).
+      last five, `"stalled"` after `max_rejections` consecutive rejected trials; one stopped by `max_steps` whose
+      cost fell over its last 50 accepted steps by less than cost/(m - p) (what moving one parameter by one standard
+      error changes) has converged in practice, `"successful"`, as in `fitting.solve` (`fitting._solve.settled`). A
+      solver instance must evaluate the residuals once per step, at its trial point (the built-in ones do).
     - `devices`: the devices the fleet is split over (its arrays sharded along the fleet axis; XLA partitions the
       compiled loop, each device stepping its share); default every device of JAX's default backend.
     - `batch_size`: actuators stepped together (over all devices; a multiple of their number); the fleet runs
@@ -493,6 +499,13 @@ def fit_fleet(
     verdicts = [verdict_of(int(c), solver=solver, window=window, since=int(k), max_steps=max_steps,
                            interrupted=interrupted and bool(cut[i]), stalled_note=stalled_note)
                 for i, (c, k) in enumerate(zip(codes, since))]
+    # as `fitting.solve`: an actuator stopped by max_steps whose cost no longer falls by what its data resolve
+    accepted = np.asarray(carry.book.accepted)
+    tails = np.asarray(carry.tail)
+    rmse = _rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in per_actuator]) for c in targets})
+    m = _num_residuals(core)
+    verdicts = [settled(v, list(tails[i][-1 - min(int(accepted[i]), SETTLED_WINDOW):]), int(carry.steps[i]),
+                        int(m[i]), int(carry.y.shape[1])) for i, v in enumerate(verdicts)]
     for i, v in enumerate(verdicts):
         if v.code == "nonfinite_initial":  # the model's own message, from a trace that raises
             why = model_error(problem(i, scales_np[i]).core, carry.y[i])
@@ -509,13 +522,20 @@ def fit_fleet(
         accepted_steps=np.asarray(carry.book.accepted),
         initial_cost=initial_cost,
         cost=np.asarray(carry.lin.cost),
-        rmse=_rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in per_actuator]) for c in targets}),
+        rmse=rmse,
         seconds=seconds,
         devices=len(devices),
         _problem=lambda i: problem(i, scales_np[i]),  # actuator i's problem in the fleet's scaling, on demand
         _u=carry.y,
         _lin=carry.lin,
     )
+
+
+def _num_residuals(core: ProblemCore) -> np.ndarray:
+    """Each actuator's number of residuals (its samples that count, over every target channel and record), as
+    `Problem.num_residuals`."""
+    return sum(np.asarray(mask).reshape(np.shape(mask)[0], -1).sum(axis=1) for g in core.groups
+               for mask in g.masks.values())
 
 
 def _rmse(core: ProblemCore, r: np.ndarray, weights: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

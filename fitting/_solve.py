@@ -97,11 +97,12 @@ def _start_verdict(runs, n_levels) -> Verdict:
 
 
 SETTLED_WINDOW = 50
-"""Accepted steps over which `_settled` measures what a fit stopped by `max_steps` still gained."""
+"""Accepted steps over which `settled` measures what a fit stopped by `max_steps` still gained."""
 
 
-def _settled(verdict: Verdict, run, m: int, p: int) -> Verdict:
-    r"""A start stopped by `max_steps` (`verdict`, of its last `run`) whose cost fell over its last `SETTLED_WINDOW`
+def settled(verdict: Verdict, history, steps: int, m: int, p: int) -> Verdict:
+    r"""A start stopped by `max_steps` (`verdict`, after `steps` steps; `history` its accepted costs, oldest first,
+    at least the last `SETTLED_WINDOW + 1`) whose cost fell over its last `SETTLED_WINDOW`
     accepted steps by less than moving one parameter by one standard error changes it, $\hat\sigma^2/2 =
     \text{cost}/(m - p)$ (the data-resolution bound of `fitting._stationarity.kink_ftol`, without its 1e-5 floor),
     has converged in practice: another as many steps at that rate would change nothing the data can resolve. As
@@ -110,14 +111,14 @@ def _settled(verdict: Verdict, run, m: int, p: int) -> Verdict:
     Measured on `experiments.plant_study`'s PI draw 1: a re-seeded fit at 1.00x the noise crawled on for 500 steps,
     its cost falling by 5e-6 of it in the last 60 (a nearly dead play's threshold, 36 ± 35 V, drifting), against a
     resolution of 3e-5; it ended "max_steps_reached" and `piezojax fit` exited 1. Other verdicts, and runs with
-    fewer accepted steps, are returned unchanged."""
-    h = run.history
+    fewer accepted steps, are returned unchanged. `fitting.fit_fleet` applies it to each actuator alike."""
+    h = history
     if verdict.code != "max_steps_reached" or len(h) <= SETTLED_WINDOW:
         return verdict
     drop, resolution = h[-1 - SETTLED_WINDOW] - h[-1], h[-1] / max(m - p, 1)
     if not (np.isfinite(drop) and drop < resolution):
         return verdict
-    return Verdict("successful", f"converged in practice: max_steps = {run.steps} reached while the cost fell by "
+    return Verdict("successful", f"converged in practice: max_steps = {steps} reached while the cost fell by "
                                  f"{drop:.2e} over the last {SETTLED_WINDOW} accepted steps, less than moving one "
                                  f"parameter by one standard error changes it (cost/(m - p) = {resolution:.2e})")
 
@@ -173,7 +174,7 @@ def solve(
     - `smoothing`: continuation levels for the hysteresis `smoothing` (e.g. `(0.1, 0.02, 0.0)`: relaxed, then
       exact operators; each level starts from the previous optimum). `None`: the model's own smoothing.
     - `max_steps`: steps per level (a start stopped by them whose cost fell by less than a one-standard-error change
-      of one parameter over its last 50 accepted steps has converged in practice: `"successful"`, see `_settled`);
+      of one parameter over its last 50 accepted steps has converged in practice: `"successful"`, see `settled`);
       `rtol`, `atol`: optimistix's Cauchy termination tolerances on the parameters
       and the residuals; `ftol`: the fit also stops (converged) when the cost decreased by less than `ftol` relative
       per accepted step, on average over the last five (scipy's `ftol` test, averaged).
@@ -307,10 +308,11 @@ def solve(
         verdict = Verdict("interrupted", "interrupted by the user (Ctrl-C) after the steps, while the standard "
                                          "errors were computed (not computed)")
     m, p = level.num_residuals, level.num_params
-    verdict = _settled(verdict, runs[-1][1], m, p)
+    verdict = settled(verdict, runs[-1][1].history, runs[-1][1].steps, m, p)
     table = None
     if starts is not None:
-        verdicts = [_settled(v, per_start[i][-1][1], m, p) for i, v in enumerate(verdicts)]
+        verdicts = [settled(v, per_start[i][-1][1].history, per_start[i][-1][1].steps, m, p)
+                    for i, v in enumerate(verdicts)]
         verdicts[best] = verdict
         table = [{"cost": float(costs[i]), "success": v.success, "code": v.code, "reason": v.reason,
                   "steps": sum(r.steps for _, r in per_start[i]), "best": i == best} for i, v in enumerate(verdicts)]

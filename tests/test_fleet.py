@@ -91,6 +91,24 @@ def test_each_actuator_takes_the_steps_of_its_own_fit(fleet):
         res[3]
 
 
+def test_an_actuator_that_no_longer_gains_at_max_steps_has_converged_as_in_its_own_fit():
+    """`fitting.solve` calls a start stopped by max_steps converged in practice when its cost fell over its last 50
+    accepted steps by less than cost/(m - p) (`settled`); the fleet judges each actuator alike. No test of the
+    solver's can end these fits (rtol = atol = 0, and a negative ftol: no accepted step raises the cost), so only
+    max_steps stops them: after 130 steps each has crawled at its minimum for more than 50 accepted steps, after 40
+    none has had 50."""
+    sets = _records(3)
+    for max_steps, code in ((130, "successful"), (40, "max_steps_reached")):
+        kw = dict(free=FREE, max_steps=max_steps, rtol=0.0, atol=0.0, ftol=-1.0, progress=False)
+        res = fitting.fit_fleet(_model(), sets, **kw)
+        assert list(res.steps) == [max_steps] * 3
+        for i, data in enumerate(sets):
+            one = fitting.fit(_model(), data, kink_restarts=0, **kw)
+            assert res.codes[i] == one.code == code and bool(res.success[i]) == (code == "successful")
+            assert ("converged in practice" in res.reasons[i]) == (code == "successful")
+            assert res[i].code == code
+
+
 def test_batches_and_host_devices_give_the_same_fit(fleet):
     sets, res = fleet
     batched = fitting.fit_fleet(_model(), sets, free=FREE, max_steps=12, progress=False, batch_size=2)

@@ -285,23 +285,20 @@ def test_a_start_is_outpaced_only_when_it_cannot_catch_up():
 
 
 def test_a_fit_at_max_steps_that_no_longer_gains_what_the_data_resolve_has_converged():
-    """`_settled`: stopped by max_steps, a start whose cost fell over its last 50 accepted steps by less than
+    """`settled`: stopped by max_steps, a start whose cost fell over its last 50 accepted steps by less than
     cost / (m - p) (a one-standard-error change of one parameter) is converged, with the numbers in the reason;
     one still falling by more, one with fewer accepted steps and other verdicts stay as they are."""
-    from fitting._solve import SETTLED_WINDOW, _settled
-    from fitting._solver import Run
-
-    def run(history):
-        return Run(None, 500, len(history) - 1, list(history), list(range(len(history))), None)
+    from fitting._solve import SETTLED_WINDOW, settled
 
     stopped = fitting.Verdict("max_steps_reached", "max_steps = 500 reached before convergence")
     m, p = 10_020, 20  # cost / (m - p) = 1e-4 of the cost
     crawl = 1.0 + 1e-7 * np.arange(200)[::-1]  # 5e-6 over the last 50
     falling = 1.0 + 1e-5 * np.arange(200)[::-1]  # 5e-4 over the last 50
-    settled = _settled(stopped, run(crawl), m, p)
-    assert settled.success and settled.code == "successful" and "converged in practice" in settled.reason
-    assert f"over the last {SETTLED_WINDOW} accepted steps" in settled.reason and "1.00e-04" in settled.reason
-    assert _settled(stopped, run(falling), m, p) == stopped
-    assert _settled(stopped, run(crawl[-SETTLED_WINDOW:]), m, p) == stopped  # too few accepted steps to judge
+    verdict = settled(stopped, list(crawl), 500, m, p)
+    assert verdict.success and verdict.code == "successful" and "converged in practice" in verdict.reason
+    assert f"over the last {SETTLED_WINDOW} accepted steps" in verdict.reason and "1.00e-04" in verdict.reason
+    assert "max_steps = 500 reached" in verdict.reason
+    assert settled(stopped, list(falling), 500, m, p) == stopped
+    assert settled(stopped, list(crawl[-SETTLED_WINDOW:]), 500, m, p) == stopped  # too few accepted steps to judge
     other = fitting.Verdict("stalled", "r")
-    assert _settled(other, run(crawl), m, p) == other
+    assert settled(other, list(crawl), 500, m, p) == other
