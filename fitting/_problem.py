@@ -341,13 +341,32 @@ def _residuals(core: ProblemCore, u):
     return core.residuals(u)
 
 
+LOST_COLUMN = 1e-30
+"""A Jacobian column whose squared norm is at most this fraction of the largest finite one counts as zero: its
+digits are rounding noise or lost to underflow (`lost_columns`)."""
+
+
+def lost_columns(diag) -> np.ndarray:
+    r"""Per column of a Jacobian (`diag` the diagonal of $J^\top J$, any leading batch axes): a finite column whose
+    squared norm is at most `LOST_COLUMN` of the largest finite one (of its row of the batch). Such a column is zero
+    in exact arithmetic or has lost its digits: measured, a prehistory started at an excursion of 0 V, where the
+    output's derivative in it vanishes, had a column of norm 5e-23 (rounding noise) among columns of order 1;
+    scaled to a unit norm, every trial step overflowed and the fit stalled at its start. A resonance's damping
+    driven to 3e-199 on a record that never excites it gave a column that underflowed."""
+    diag = np.clip(np.asarray(diag, dtype=float), 0.0, None)
+    finite = np.isfinite(diag)
+    top = np.max(np.where(finite, diag, 0.0), axis=-1, keepdims=True)
+    return finite & (diag <= LOST_COLUMN * top)
+
+
 def jacobian_scales(scales, jtj) -> np.ndarray:
     r"""The Jacobian-column scaling $s_j / \|\partial r/\partial u_j\|$ from $J^\top J$ at $u = \theta/s$ (any leading
     batch axes), rounded to powers of two (so that $\theta/s \cdot s = \theta$ exactly: the start is the user's model,
-    bit for bit); a column without effect keeps its scale `s`."""
+    bit for bit); a column without effect (zero, or lost: `lost_columns`) keeps its scale `s`."""
     scales, jtj = np.asarray(scales), np.asarray(jtj)
-    norms = np.sqrt(np.clip(np.diagonal(jtj, axis1=-2, axis2=-1), 0.0, None))
-    ok = np.isfinite(norms) & (norms > 0)
+    diag = np.diagonal(jtj, axis1=-2, axis2=-1)
+    norms = np.sqrt(np.clip(diag, 0.0, None))
+    ok = np.isfinite(norms) & (norms > 0) & ~lost_columns(diag)
     new = np.where(ok, scales / np.where(ok, norms, 1.0), scales)
     return np.exp2(np.round(np.log2(new)))
 

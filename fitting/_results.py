@@ -83,7 +83,9 @@ class FitResult:
       smoothing level).
     - `parameter_names`, `values`, `std_errors`, `correlation`: the free parameters in physical units with their
       Gauss–Newton standard errors $\\sqrt{\\mathrm{diag}(D\\,s^2(J^\\top J)^{+}D^\\top)}$, $s^2 = \\|r\\|^2/(m - p)$,
-      $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ (scaled);
+      $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ with its
+      columns scaled to unit norm at the fitted point, the scaling in which the errors and the undetermined
+      directions are computed (so they do not depend on the solver's own scaling, fixed at the start);
       `gradient_cosine`: $\\max_i |\\cos(r, J_{:,i})|$, ≈ 0 at a stationary point. A fit that stops with it above
       `gtol` is probed along ± each parameter, the gradient and the Gauss–Newton step: if the cost rises along all
       of them (one-sided slopes above $-$`gtol` in the same units) it is a minimum at a kink of the piecewise smooth
@@ -375,19 +377,33 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
     finite = bool(np.all(np.isfinite(r)) and np.all(np.isfinite(jtj)) and np.all(np.isfinite(jtr)))
     if not finite:  # e.g. a fit that failed at a non-finite start: no uncertainty can be computed
         jtr, jtj = np.zeros_like(jtr), np.zeros_like(jtj)
-    evals, evecs = np.linalg.eigh(jtj)
+    # In the Jacobi scaling of the fitted point, z_j = c_j u_j with c_j the norm of J's column j (a lost column,
+    # `lost_columns`, zeroed): which directions the data determine, and the errors, then do not depend on the
+    # solver's scaling of u, frozen at the start (measured before: the same Bouc–Wen optimum, started from n = 1 and
+    # from n = 2, had A, beta and gamma determined to 0.2-6 % in one report and "infinite" in the other). Whether
+    # a column is lost is judged in the solver's scaling, where every column had a unit norm at the start (or its
+    # value scale, lost there already): lost means 15 orders of magnitude of its effect gone.
+    from ._problem import lost_columns
+
+    diag = np.clip(np.diag(jtj), 0.0, None)
+    lost = lost_columns(diag) | ~(diag > 0)
+    c = np.where(lost, 1.0, np.sqrt(np.where(lost, 1.0, diag)))
+    scaled_jtj = jtj / np.outer(c, c)
+    scaled_jtj[lost, :] = 0.0
+    scaled_jtj[:, lost] = 0.0
+    evals, evecs = np.linalg.eigh(scaled_jtj)
     top = evals.max() if evals.size else 0.0
     keep = evals > top * 1e-14 * p
     inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
-    cov_u = s2 * inv
-    d = np.asarray(problem.physical_jacobian(u))
-    cov = d @ cov_u @ d.T
+    cov_z = s2 * inv
+    d = np.asarray(problem.physical_jacobian(u)) / c[None, :]  # physical parameters per z
+    cov = d @ cov_z @ d.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     status = np.full(se.shape, "finite", dtype=object)
     if not np.all(keep):
         # Directions the data do not determine. A parameter is undetermined (infinite standard error) when it
         # moves along them by either measure:
-        # - scaled: a tenth or more of its (scaled) change lies along one of them (a sum a + b of two parameters,
+        # - scaled: a tenth or more of its change (in z) lies along one of them (a sum a + b of two parameters,
         #   whatever their values);
         # - relative: along them each parameter changes by a relative amount a_i (a row vector over a basis of
         #   those directions; per |value| + standard error), and along the direction that moves parameter i most
@@ -397,7 +413,7 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
         #   not mask each other).
         # The others keep the finite errors of the pseudo-inverse, i.e. with the undetermined combination held
         # fixed (touching it by 1e-3 does not make a parameter unknown).
-        move = d @ evecs[:, ~keep]  # each parameter's change along a basis of those directions
+        move = d @ evecs[:, ~keep]  # each parameter's change along an orthonormal basis of those directions (in z)
         reach = np.abs(d).max(axis=1)
         scaled = np.abs(move).max(axis=1) / np.maximum(reach, 1e-300)
         size = np.maximum(np.abs(np.asarray(problem.physical(u))) + se, 1e-9 * reach)

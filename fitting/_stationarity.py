@@ -95,14 +95,15 @@ def _probe_descent(problem, u, cost, r, jtr, jtj) -> tuple[float, bool, Any]:
 
 def max_gradient_cosine(r, jtr, jtj) -> float:
     """MINPACK's gtol quantity: the largest |cos| between the residual and a Jacobian column (0 for a zero residual
-    or no parameters). A column whose squared norm is below 1e-30 of the largest counts as zero (cosine 0, as MINPACK
-    skips zero columns): there $J^\top J$'s diagonal has lost its digits to underflow (measured: a resonance's
-    damping driven to 3e-199 on a record that never excites it gave a cosine of inf)."""
+    or no parameters). A column whose squared norm is below 1e-30 of the largest (`fitting._problem.lost_columns`)
+    counts as zero (cosine 0, as MINPACK skips zero columns): there $J^\top J$'s diagonal has lost its digits
+    (measured: a resonance's damping driven to 3e-199 on a record that never excites it gave a cosine of inf)."""
+    from ._problem import lost_columns
+
     r, jtr, jtj = (np.asarray(x) for x in (r, jtr, jtj))
     diag = np.clip(np.diag(jtj), 0.0, None)
-    finite = np.isfinite(diag)
     # a column is dropped only for being tiny next to the largest finite one; a non-finite one keeps its NaN or inf
-    lost = finite & (diag <= 1e-30 * np.max(diag[finite], initial=0.0))
+    lost = lost_columns(diag)
     col_norms = np.sqrt(diag)
     rnorm = np.sqrt(np.sum(r**2))
     with np.errstate(invalid="ignore", divide="ignore"):
