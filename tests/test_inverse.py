@@ -235,6 +235,21 @@ def test_linear_inverse_refuses_non_minimum_phase_and_bad_degree():
         g.inverse(bandwidth=-1.0)
 
 
+def test_a_traced_system_asks_for_its_degree_and_bandwidth_naming_grad():
+    """Under differentiation the defaults, which need concrete values, name what to pass and why; with both given
+    the inverse is differentiable."""
+
+    def drive(omega, **kw):
+        g = pj.StableTransferFunction(1.0, omega=[omega], zeta=[0.3])
+        return jnp.sum(g.inverse(**kw).simulate(jnp.linspace(0.0, 1.0, 50), 1e-2))
+
+    with pytest.raises(pj.PiezojaxValueError, match=r"traced \(under jit, vmap or grad\).*`relative_degree`"):
+        jax.grad(drive)(3.0)
+    with pytest.raises(pj.PiezojaxValueError, match=r"pass `bandwidth` when the system's values are traced"):
+        jax.grad(lambda w: drive(w, relative_degree=2))(3.0)
+    assert np.isfinite(jax.grad(lambda w: drive(w, relative_degree=2, bandwidth=10.0))(3.0))
+
+
 # --- whole actuator ----------------------------------------------------------------------------------------------
 
 DT = 2e-4

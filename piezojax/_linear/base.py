@@ -153,7 +153,8 @@ class AbstractLinearSystem(eqx.Module):
         A, B, C, D = (concrete_or_none(x) for x in self.state_space())
         if any(x is None for x in (A, B, C, D)):
             raise PiezojaxValueError(
-                "the relative degree needs concrete system values; pass `relative_degree` explicitly under jit/vmap"
+                "the relative degree needs concrete system values, and these are traced (under jit, vmap or grad): "
+                "pass `relative_degree` explicitly (and `bandwidth`, whose default needs them too)"
             )
         A, B, C, D = (np.asarray(x, np.float64) for x in (A, B, C, D))
         n = A.shape[0]
@@ -230,5 +231,6 @@ def default_inverse_bandwidth(system: AbstractLinearSystem) -> float:
     r"""The default $\omega_f$ of `AbstractLinearSystem.inverse`: the fastest pole's magnitude $\max|\lambda(A)|$."""
     a = concrete_or_none(system.state_space()[0])
     if a is None:
-        raise PiezojaxValueError("pass `bandwidth` under jit/vmap (the default needs concrete values)")
+        raise PiezojaxValueError("pass `bandwidth` when the system's values are traced (under jit, vmap or grad): "
+                                 "the default needs concrete values")
     return float(np.max(np.abs(np.linalg.eigvals(np.asarray(a, np.float64)))))
