@@ -412,6 +412,10 @@ class BlockKind:
         """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
         return 1
 
+    plays_swapped = False
+    """Whether the block is a sum of weighted plays (`weights`, `thresholds`, the output linear in the weights) of
+    which `ModelConfig.reseeded` may move one live play where the residual needs it (`fitting._config._play_swap`)."""
+
     def reseed(self, o: dict, block, max_input: float, place=None):
         """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
         act, or `None` when none is dead or the kind does not re-seed (default). `place`: see `_reseed_plays`."""
@@ -562,6 +566,8 @@ class PrandtlIshlinskiiKind(BlockKind):
     def cold_start_args(self, o, config):
         return {"n_plays": o["plays"]}
 
+    plays_swapped = True
+
     def reseed(self, o, block, max_input, place=None):
         r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
         leaves $[-(\max|v| - r), \max|v| - r]$), is below $10^{-3}$ of the operator's,
@@ -628,6 +634,8 @@ class PlayKind(BlockKind):
 
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
+
+    plays_swapped = True
 
     def reseed(self, o, block, max_input, place=None):
         """As `prandtl_ishlinskii`'s."""

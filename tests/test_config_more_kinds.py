@@ -365,6 +365,34 @@ def test_freed_plays_go_where_the_residual_needs_them():
     np.testing.assert_allclose(pj.unwrap(same).hysteresis.thresholds, [10.0, 20.0, 30.0, 55.0, 80.0])
 
 
+def test_a_live_play_in_a_worse_place_is_swapped_where_the_residual_needs_it():
+    """No play is dead or coinciding, but the fit left the plant's 80 V play at 50 V: the swap refits the weights of
+    every set with one live play moved to a candidate threshold (exact: the output is linear in the weights) and
+    moves it to within one candidate spacing of 80 V, with positive weights near the plant's. At the plant itself,
+    on noisy data, nothing moves; without the fit's residual (no `fit_args`) nothing is swapped."""
+    t = np.arange(3000) / 1000.0
+    v = 100 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-0.4 * t)
+    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.25]), jnp.array([10.0, 20.0, 30.0, 80.0]), w0=0.5)
+    y = np.asarray(truth(jnp.asarray(v)))
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y)])
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 4\n[state]\noffset = false\n', "pi.toml")
+    free = cfg.fit_free(["displacement"])
+    args = {"predictor": cfg.predictor(), "targets": None}
+    fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.1]), jnp.array([10.0, 20.0, 30.0, 50.0]),
+                                              w0=0.5))
+    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, args)
+    assert moved == 1
+    pi = pj.unwrap(model).hysteresis
+    r, w = np.asarray(pi.thresholds), np.asarray(pi.weights)
+    np.testing.assert_allclose(r[:3], [10.0, 20.0, 30.0])
+    assert abs(r[3] - 80.0) < np.max(np.abs(v)) / 64 and np.all(w > 0)
+    np.testing.assert_allclose(w, [0.3, 0.25, 0.2, 0.25], rtol=0.1)
+    assert cfg.reseeded(cfg._constrain(fitted), ds, free) is None
+    noisy = fitting.Dataset([fitting.Experiment.from_arrays(
+        t=t, v_in=v, displacement=y + 0.05 * np.random.default_rng(3).standard_normal(t.size))])
+    assert cfg.reseeded(cfg._constrain(pj.Actuator(truth)), noisy, free, args) is None
+
+
 def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch):
     """SIGINT while the dead plays are being placed (before the re-seeded fit's solver runs): the first fit is
     written with code "interrupted", result.json says the re-seeding was interrupted, and the exit status is 130
