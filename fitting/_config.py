@@ -305,13 +305,14 @@ class ModelConfig:
         as `build` returns it, and how many moved; `None` when none is dead, the kind does not re-seed, or `free`
         does not fit both the weights and the thresholds of the hysteresis. With `fit_args` (the `predictor`,
         `targets` and `weights` of the fit) freed plays go where the residual needs them (`_residual_thresholds`),
-        else to the widest gaps between the live thresholds; and when none is dead, one live play of a kind that
-        swaps plays (`BlockKind.plays_swapped`) moves where the residual needs it if that lowers the cost
-        (`_play_swap`)."""
-        if "hysteresis" not in self._block_tables() or self.hysteresis_kind.empty:
+        else to the widest gaps between the live thresholds; and when none is dead, one live element of a kind that
+        swaps elements (`BlockKind.swap_form`: plays, Maxwell-slip elements) moves where the residual needs it if
+        that lowers the cost (`_play_swap`)."""
+        kind = self.hysteresis_kind
+        if "hysteresis" not in self._block_tables() or kind.empty or kind.element_parameters is None:
             return None
         where = self._block_path("hysteresis")
-        if not _all_fitted(where, ("weights", "thresholds"), free):
+        if not _all_fitted(where, kind.element_parameters, free):
             return None
         plain = pj.unwrap(model)
         get = _getter(where.split("."))
@@ -321,12 +322,14 @@ class ModelConfig:
         if fit_args is not None:
             def place(thresholds, weights, n):
                 return _residual_thresholds(plain, get, where, dataset, fit_args, thresholds, weights, n, vmax)
-        new = self.hysteresis_kind.reseed(self.hysteresis_options, block, vmax, place)
-        if new is None and fit_args is not None and self.hysteresis_kind.plays_swapped:
-            new = _play_swap(plain, get, where, dataset, fit_args, vmax)
+        new = kind.reseed(self.hysteresis_options, block, vmax, place)
+        if new is None and fit_args is not None:
+            new = _play_swap(plain, get, where, dataset, fit_args, vmax, kind)
         if new is None:
             return None
-        moved = int(np.sum(~np.isin(np.asarray(new.thresholds), np.asarray(block.thresholds))))
+        old = np.asarray(kind.swap_form(block)[1] if kind.swap_form(block) else block.thresholds, float)
+        now = np.asarray(kind.swap_form(new)[1] if kind.swap_form(new) else new.thresholds, float)
+        moved = int(np.sum(np.min(np.abs(now[:, None] - old[None, :]), axis=1) > 1e-9 * vmax))
         return self._constrain(eqx.tree_at(get, plain, new)), moved
 
     def relocated_lags(self, model, dataset, free, fit_args: Mapping) -> tuple[object, int] | None:
@@ -411,9 +414,13 @@ class _PlayWeights:
     weights' scales). `decrease(t)` is what refitting the weights of the plays `t` (positions in `r`, the sorted
     thresholds) by linear least squares, the others held, takes off the sum of squares in the Gauss–Newton model
     (exact where the blocks after the hysteresis are linear), with the weights' changes; `live` and `candidates`
-    are positions in `r`. `empty` when no candidate is left or the linearisation is not finite."""
+    are positions in `r`. `empty` when no candidate is left or the linearisation is not finite. With `stops`, the
+    block is a sum of stops $\sum_i k_i S_{r_i}[v] = \sum_i k_i (v - P_{r_i}[v])$ (Maxwell slip; `weights` the
+    $k_i$): it is linearised as the same operator in PI form (`as_prandtl_ishlinskii`: $w_0 = \sum k_i$, weights
+    $-k_i$), and each stop's column is $w_0$'s less its play's."""
 
-    def __init__(self, plain, get, where: str, dataset, fit_args: Mapping, thresholds, weights, vmax: float):
+    def __init__(self, plain, get, where: str, dataset, fit_args: Mapping, thresholds, weights, vmax: float,
+                 stops: bool = False):
         from ._problem import Problem
 
         tol = DUPLICATE_THRESHOLD * vmax
@@ -429,19 +436,33 @@ class _PlayWeights:
         order = np.argsort(r)
         self.r, self.w = r[order], w[order]
         block = get(plain)
+        if stops:
+            block = block.as_prandtl_ishlinskii(0.0)
+        sign = -1.0 if stops else 1.0
         trial = eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
-                            (jnp.asarray(self.w, block.weights.dtype), jnp.asarray(self.r, block.thresholds.dtype)))
+                            (jnp.asarray(sign * self.w, block.weights.dtype),
+                             jnp.asarray(self.r, block.thresholds.dtype)))
+        free = [f"{where}.weights"] + ([f"{where}.w0"] if stops else [])
         problem = Problem(eqx.tree_at(get, plain, trial), dataset, predictor=fit_args.get("predictor"),
                           targets=fit_args.get("targets"), weights=fit_args.get("weights", "range"),
-                          free=[f"{where}.weights"], scales="value")
+                          free=free, scales="value")
         res, g, h = (np.asarray(x, float) for x in problem.normal_equations(problem.u0))
         if not (np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
             self.empty = True
             return
-        # unit columns: the choice does not depend on the weights' scales; a weight changes by step / d * scale
+        scales = np.asarray(problem.scales, float)
+        g, h = g / scales, h / np.outer(scales, scales)  # in the weights themselves
+        if stops:  # each stop's column: w0's less its play's
+            names = problem.parameter_names()
+            i0 = names.index(f"{where}.w0")
+            plays_at = [j for j in range(len(names)) if j != i0]
+            t = np.zeros((len(plays_at), len(names)))
+            t[:, i0], t[np.arange(len(plays_at)), plays_at] = 1.0, -1.0
+            g, h = t @ g, t @ h @ t.T
+        # unit columns: the choice does not depend on the weights' scales; a weight changes by step / d
         self.d = np.sqrt(np.maximum(np.diag(h), TINY))
         self.g, self.h = g / self.d, h / np.outer(self.d, self.d)
-        self.per_unit = np.asarray(problem.scales, float) / self.d
+        self.per_unit = 1.0 / self.d
         self.sse = float(np.sum(np.square(res)))
         position = np.empty_like(order)
         position[order] = np.arange(order.size)
@@ -499,7 +520,7 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
 SWAP_CANDIDATES = 8
 
 
-def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float):
+def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float, kind: BlockKind):
     r"""The fitted model's plays with one moved where the residual needs it, or `None`: every live play none of
     whose neighbours is dead (`_reseed_plays` found none) can still sit in a worse basin than another threshold
     (measured on a numpy plant of 5 plays at 10-95 V fitted with 5 plays: true 45 and 70 V ended at 44 and 51 V,
@@ -508,10 +529,14 @@ def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float):
     whose removal costs least and each candidate threshold, the weights of the set with that play swapped for the
     candidate are refitted by linear least squares; the best set, with positive weights, is taken when it lowers
     the sum of squares below the live plays' own refit by more than `RELOCATE_GAIN` of it and than a regressor of
-    pure noise would ($25\hat\sigma^2$). The swapped plays start at those refitted weights."""
+    pure noise would ($25\hat\sigma^2$). The swapped plays start at those refitted weights. The kind gives its
+    elements as weighted plays or stops (`BlockKind.swap_form`; `None`: it swaps none) and builds the block back."""
     block = get(plain)
-    w, r = np.asarray(block.weights, float), np.asarray(block.thresholds, float)
-    lin = _PlayWeights(plain, get, where, dataset, fit_args, r, w, vmax)
+    form = kind.swap_form(block)
+    if form is None:
+        return None
+    w, r, stops = np.asarray(form[0], float), np.asarray(form[1], float), form[2]
+    lin = _PlayWeights(plain, get, where, dataset, fit_args, r, w, vmax, stops)
     if lin.empty or len(lin.live) < 2:
         return None
     live = lin.live
@@ -529,9 +554,7 @@ def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float):
         return None
     chosen, weights = best
     order = np.argsort(lin.r[chosen])
-    return eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
-                       (jnp.asarray(weights[order], block.weights.dtype),
-                        jnp.asarray(lin.r[chosen][order], block.thresholds.dtype)))
+    return kind.from_swap_form(block, weights[order], lin.r[chosen][order])
 
 
 # creep time constants searched after a fit (`ModelConfig.relocated_lags`): LAG_GRID candidates log-spaced over

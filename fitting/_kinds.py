@@ -412,9 +412,20 @@ class BlockKind:
         """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
         return 1
 
-    plays_swapped = False
-    """Whether the block is a sum of weighted plays (`weights`, `thresholds`, the output linear in the weights) of
-    which `ModelConfig.reseeded` may move one live play where the residual needs it (`fitting._config._play_swap`)."""
+    element_parameters: tuple[str, str] | None = None
+    """The parameters of the block's elements (for plays: weights and thresholds) that must both be fitted for
+    `ModelConfig.reseeded` to re-seed or swap them; `None`: it does neither."""
+
+    def swap_form(self, block):
+        r"""The block's elements as `(weights, thresholds, stops)`: a sum of weighted plays $\sum_i w_i P_{r_i}$
+        (`stops` False) or stops $\sum_i w_i (v - P_{r_i}[v])$ (True), the output linear in the weights, of which
+        `ModelConfig.reseeded` may move one where the residual needs it (`fitting._config._play_swap`); `None`
+        (default): it moves none."""
+        return None
+
+    def from_swap_form(self, block, weights, thresholds):
+        """`block` with the elements `(weights, thresholds)` of `swap_form`."""
+        raise NotImplementedError
 
     def reseed(self, o: dict, block, max_input: float, place=None):
         """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
@@ -566,7 +577,13 @@ class PrandtlIshlinskiiKind(BlockKind):
     def cold_start_args(self, o, config):
         return {"n_plays": o["plays"]}
 
-    plays_swapped = True
+    element_parameters = ("weights", "thresholds")
+
+    def swap_form(self, block):
+        return block.weights, block.thresholds, False
+
+    def from_swap_form(self, block, weights, thresholds):
+        return _with_plays(block, weights, thresholds)
 
     def reseed(self, o, block, max_input, place=None):
         r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
@@ -635,11 +652,22 @@ class PlayKind(BlockKind):
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
 
-    plays_swapped = True
+    element_parameters = ("weights", "thresholds")
+
+    def swap_form(self, block):
+        return block.weights, block.thresholds, False
+
+    def from_swap_form(self, block, weights, thresholds):
+        return _with_plays(block, weights, thresholds)
 
     def reseed(self, o, block, max_input, place=None):
         """As `prandtl_ishlinskii`'s."""
         return _reseed_plays(block, max_input, place)
+
+
+def _with_plays(block, weights, thresholds):
+    return eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
+                       (jnp.asarray(weights, block.weights.dtype), jnp.asarray(thresholds, block.thresholds.dtype)))
 
 
 def _reseed_plays(block, max_input: float, place=None):
@@ -808,6 +836,17 @@ class MaxwellSlipKind(BlockKind):
 
     def constraints(self, o):
         return {"stiffness": pj.Positive, "breakaway": pj.Positive}
+
+    element_parameters = ("stiffness", "breakaway")
+
+    def swap_form(self, block):
+        """The elements as stops: stiffness $k_i$ and slip threshold $r_i = f_i/k_i$ (`MaxwellSlip.thresholds`)."""
+        return block.stiffness, block.thresholds, True
+
+    def from_swap_form(self, block, weights, thresholds):
+        k = jnp.asarray(weights, block.stiffness.dtype)
+        return eqx.tree_at(lambda b: (b.stiffness, b.breakaway), block,
+                           (k, k * jnp.asarray(thresholds, block.breakaway.dtype)))
 
 
 class PreisachKind(BlockKind):

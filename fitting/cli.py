@@ -640,7 +640,7 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             model, lags = relocated if relocated is not None else (model, 0)
             if not moved and not lags:
                 break
-            what = [f"{moved} hysteresis element(s) re-seeded (dead, coinciding, or a live play swapped)"
+            what = [f"{moved} hysteresis element(s) re-seeded (dead, coinciding, or a live one swapped)"
                     ] if moved else []
             what += [f"{lags} creep lag(s) moved to other time constants"] if lags else []
             _info(f"{' and '.join(what)} where the residual needs them; fitting again", quiet)

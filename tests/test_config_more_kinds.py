@@ -393,6 +393,28 @@ def test_a_live_play_in_a_worse_place_is_swapped_where_the_residual_needs_it():
     assert cfg.reseeded(cfg._constrain(pj.Actuator(truth)), noisy, free, args) is None
 
 
+def test_a_maxwell_slip_element_in_a_worse_place_is_swapped_as_a_stop():
+    """Maxwell-slip elements are stops, k (v - P_r[v]) with r = breakaway / stiffness: swapped like plays, from the
+    same operator's PI form (w0 = sum k, weights -k). The plant's 80 V element, left at 50 V, moves to within one
+    candidate spacing of 80 V with stiffnesses near the plant's; `breakaway` follows as k r."""
+    t = np.arange(3000) / 1000.0
+    v = 100 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-0.4 * t)
+    k = np.array([0.3, 0.25, 0.2, 0.25])
+    truth = pj.MaxwellSlip(jnp.asarray(k), jnp.asarray(k * np.array([10.0, 20.0, 30.0, 80.0])))
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(truth(jnp.asarray(v))))])
+    cfg = parse_config('[hysteresis]\nkind = "maxwell_slip"\nelements = 4\n[state]\noffset = false\n', "ms.toml")
+    free = cfg.fit_free(["displacement"])
+    k0 = np.array([0.3, 0.25, 0.2, 0.3])
+    fitted = pj.Actuator(pj.MaxwellSlip(jnp.asarray(k0), jnp.asarray(k0 * np.array([10.0, 20.0, 30.0, 50.0]))))
+    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
+    assert moved == 1
+    ms = pj.unwrap(model).hysteresis
+    r, stiffness = np.asarray(ms.thresholds), np.asarray(ms.stiffness)
+    np.testing.assert_allclose(r[:3], [10.0, 20.0, 30.0], rtol=1e-12)
+    assert abs(r[3] - 80.0) < np.max(np.abs(v)) / 64
+    np.testing.assert_allclose(stiffness, k, rtol=0.1)
+
+
 def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, monkeypatch):
     """SIGINT while the dead plays are being placed (before the re-seeded fit's solver runs): the first fit is
     written with code "interrupted", result.json says the re-seeding was interrupted, and the exit status is 130
