@@ -327,8 +327,9 @@ class ModelConfig:
             new = _play_swap(plain, get, where, dataset, fit_args, vmax, kind)
         if new is None:
             return None
-        old = np.asarray(kind.swap_form(block)[1] if kind.swap_form(block) else block.thresholds, float)
-        now = np.asarray(kind.swap_form(new)[1] if kind.swap_form(new) else new.thresholds, float)
+        before, after = kind.swap_form(block), kind.swap_form(new)
+        old = np.asarray(before[1] if before else block.thresholds, float)
+        now = np.asarray(after[1] if after else new.thresholds, float)
         moved = int(np.sum(np.min(np.abs(now[:, None] - old[None, :]), axis=1) > 1e-9 * vmax))
         return self._constrain(eqx.tree_at(get, plain, new)), moved
 
@@ -474,16 +475,22 @@ class _PlayWeights:
         self.floor = 25.0 * unexplained / max(problem.num_residuals - order.size, 1)
 
     def decrease(self, t, without=None):
-        """`without`: a play whose weight is set to 0 (the others of `t` refitted with it removed)."""
+        """`without`: a play (not in `t`) whose weight is set to 0, the plays `t` refitted with it removed."""
+        t = list(t)
+
+        def refit(g):  # the steps of the plays `t` minimising the Gauss-Newton model with gradient `g`
+            return -np.linalg.solve(self.h[np.ix_(t, t)] + 1e-10 * np.eye(len(t)), g) if t else np.zeros(0)
+
         if without is None:
-            step = -np.linalg.solve(self.h[np.ix_(t, t)] + 1e-10 * np.eye(len(t)), self.g[t])
+            step = refit(self.g[t])
             return -float(self.g[t] @ step), step
         # the sum of squares |r + J delta|^2 = sse + 2 g.delta + delta.H.delta with delta_i = -a (play i's weight,
         # in the unit columns' coordinates, to 0), minimised over delta_t
         i = without
+        assert i not in t
         a = self.w[i] / self.per_unit[i]
         g = self.g[t] - a * self.h[t, i]
-        step = -np.linalg.solve(self.h[np.ix_(t, t)] + 1e-10 * np.eye(len(t)), g)
+        step = refit(g)
         return 2 * a * float(self.g[i]) - a * a * float(self.h[i, i]) - float(g @ step), step
 
 
@@ -537,7 +544,7 @@ def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float, 
         return None
     w, r, stops = np.asarray(form[0], float), np.asarray(form[1], float), form[2]
     lin = _PlayWeights(plain, get, where, dataset, fit_args, r, w, vmax, stops)
-    if lin.empty or len(lin.live) < 2:
+    if lin.empty:
         return None
     live = lin.live
     base = lin.decrease(live)[0]

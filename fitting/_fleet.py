@@ -35,7 +35,15 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from piezojax._checks import PiezojaxValueError, refusals_as_nan
 
-from ._problem import Problem, ProblemCore, channel_weights, jacobian_scales, model_error, over_starts
+from ._problem import (
+    Problem,
+    ProblemCore,
+    channel_weights,
+    jacobian_scales,
+    model_error,
+    over_starts,
+    residual_counts,
+)
 from ._results import FitResult, summarise
 from ._solve import SETTLED_WINDOW, PrecisionWarning, caller_level, make_solver, settled
 from ._solver import (
@@ -503,7 +511,7 @@ def fit_fleet(
     accepted = np.asarray(carry.book.accepted)
     tails = np.asarray(carry.tail)
     rmse = _rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in per_actuator]) for c in targets})
-    m = _num_residuals(core)
+    m = np.asarray(residual_counts(core.groups))
     verdicts = [settled(v, list(tails[i][-1 - min(int(accepted[i]), SETTLED_WINDOW):]), int(carry.steps[i]),
                         int(m[i]), int(carry.y.shape[1])) for i, v in enumerate(verdicts)]
     for i, v in enumerate(verdicts):
@@ -529,13 +537,6 @@ def fit_fleet(
         _u=carry.y,
         _lin=carry.lin,
     )
-
-
-def _num_residuals(core: ProblemCore) -> np.ndarray:
-    """Each actuator's number of residuals (its samples that count, over every target channel and record), as
-    `Problem.num_residuals`."""
-    return sum(np.asarray(mask).reshape(np.shape(mask)[0], -1).sum(axis=1) for g in core.groups
-               for mask in g.masks.values())
 
 
 def _rmse(core: ProblemCore, r: np.ndarray, weights: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

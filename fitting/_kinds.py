@@ -429,7 +429,8 @@ class BlockKind:
 
     def reseed(self, o: dict, block, max_input: float, place=None):
         """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
-        act, or `None` when none is dead or the kind does not re-seed (default). `place`: see `_reseed_plays`."""
+        act, or `None` when none is dead or the kind does not re-seed (default). `place`: see `_reseed_plays`.
+        `ModelConfig.reseeded` calls it only for a kind that names its `element_parameters`."""
         return None
 
     def gains(self, values):
@@ -538,7 +539,19 @@ class NoHysteresis(_NoBlock):
     table, name = "hysteresis", "none"
 
 
-class PrandtlIshlinskiiKind(BlockKind):
+class _PlaySum(BlockKind):
+    """A kind whose block is a sum of weighted plays (`weights`, `thresholds`): re-seeded and swapped as plays."""
+
+    element_parameters = ("weights", "thresholds")
+
+    def swap_form(self, block):
+        return block.weights, block.thresholds, False
+
+    def from_swap_form(self, block, weights, thresholds):
+        return _with_plays(block, weights, thresholds)
+
+
+class PrandtlIshlinskiiKind(_PlaySum):
     """`pj.PrandtlIshlinskii`: `plays` (≤ 100), `weights`, `thresholds`, `w0`, `smoothing`. Start:
     `fitting.cold_start_actuator` in its family, else `pj.pi_cold_start` on the quasi-static output."""
 
@@ -577,14 +590,6 @@ class PrandtlIshlinskiiKind(BlockKind):
     def cold_start_args(self, o, config):
         return {"n_plays": o["plays"]}
 
-    element_parameters = ("weights", "thresholds")
-
-    def swap_form(self, block):
-        return block.weights, block.thresholds, False
-
-    def from_swap_form(self, block, weights, thresholds):
-        return _with_plays(block, weights, thresholds)
-
     def reseed(self, o, block, max_input, place=None):
         r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
         leaves $[-(\max|v| - r), \max|v| - r]$), is below $10^{-3}$ of the operator's,
@@ -604,7 +609,7 @@ class PrandtlIshlinskiiKind(BlockKind):
                 "w0": float(block.w0)}
 
 
-class PlayKind(BlockKind):
+class PlayKind(_PlaySum):
     r"""Weighted play (backlash) operators without a linear term, $y = \sum_i w_i P_{r_i}[v]$ (`pj.PrandtlIshlinskii`
     with $w_0 = 0$): `plays` (≤ 100, default 1: one backlash), `weights`, `thresholds`, `smoothing`. Start: the
     weights by non-negative least squares on the play outputs for thresholds $c\max|v|\,i/n$, $i = 1 \dots n$, the
@@ -651,14 +656,6 @@ class PlayKind(BlockKind):
 
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
-
-    element_parameters = ("weights", "thresholds")
-
-    def swap_form(self, block):
-        return block.weights, block.thresholds, False
-
-    def from_swap_form(self, block, weights, thresholds):
-        return _with_plays(block, weights, thresholds)
 
     def reseed(self, o, block, max_input, place=None):
         """As `prandtl_ishlinskii`'s."""

@@ -355,8 +355,14 @@ def lost_columns(diag) -> np.ndarray:
     driven to 3e-199 on a record that never excites it gave a column that underflowed."""
     diag = np.clip(np.asarray(diag, dtype=float), 0.0, None)
     finite = np.isfinite(diag)
-    top = np.max(np.where(finite, diag, 0.0), axis=-1, keepdims=True)
+    top = np.max(np.where(finite, diag, 0.0), axis=-1, keepdims=True, initial=0.0)
     return finite & (diag <= LOST_COLUMN * top)
+
+
+def residual_counts(groups):
+    """The residuals that count (the masks' true entries, over every group and target channel): a number, or one per
+    entry of the masks' axes before (experiments, time), e.g. a fleet's actuators."""
+    return sum(np.asarray(m).reshape(*np.shape(m)[:-2], -1).sum(axis=-1) for g in groups for m in g.masks.values())
 
 
 def jacobian_scales(scales, jtj) -> np.ndarray:
@@ -552,13 +558,13 @@ class Problem:
             _, _, jtj = _normal_equations(core, theta0 / scales)
             scales = jnp.asarray(jacobian_scales(scales, jtj), theta0.dtype)
             core = eqx.tree_at(lambda c: c.scales, core, scales)
-        num_residuals = int(sum(int(np.sum(np.asarray(m))) for g in groups for m in g.masks.values()))
+        num_residuals = int(residual_counts(groups))
         if num_residuals <= theta0.size:
             raise PiezojaxValueError(
                 f"{num_residuals} data points for {theta0.size} free parameters: the fit is underdetermined"
             )
         self._set(mask=mask, core=core, theta0=theta0, u0=theta0 / scales, num_residuals=num_residuals,
-                  num_params=int(theta0.size))
+                  num_params=int(theta0.size), value_scales=value_scales)
 
     def _set(self, **attributes):
         for k, v in attributes.items():

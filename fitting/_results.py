@@ -380,13 +380,13 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
     # In the Jacobi scaling of the fitted point, z_j = c_j u_j with c_j the norm of J's column j (a lost column,
     # `lost_columns`, zeroed): which directions the data determine, and the errors, then do not depend on the
     # solver's scaling of u, frozen at the start (measured before: the same Bouc–Wen optimum, started from n = 1 and
-    # from n = 2, had A, beta and gamma determined to 0.2-6 % in one report and "infinite" in the other). Whether
-    # a column is lost is judged in the solver's scaling, where every column had a unit norm at the start (or its
-    # value scale, lost there already): lost means 15 orders of magnitude of its effect gone.
+    # from n = 2, had A, beta and gamma determined to 0.2-6 % in one report and "infinite" in the other).
     from ._problem import lost_columns
 
     diag = np.clip(np.diag(jtj), 0.0, None)
-    lost = lost_columns(diag) | ~(diag > 0)
+    # a lost column is judged in the start values' relative changes (value scaling), whatever the solver's scaling
+    to_value = (np.asarray(problem.value_scales, float) / np.asarray(problem.scales, float)) ** 2
+    lost = lost_columns(diag * to_value) | ~(diag > 0)
     c = np.where(lost, 1.0, np.sqrt(np.where(lost, 1.0, diag)))
     scaled_jtj = jtj / np.outer(c, c)
     scaled_jtj[lost, :] = 0.0

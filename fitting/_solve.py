@@ -101,8 +101,8 @@ SETTLED_WINDOW = 50
 
 
 def settled(verdict: Verdict, history, steps: int, m: int, p: int) -> Verdict:
-    r"""A start stopped by `max_steps` (`verdict`, after `steps` steps; `history` its accepted costs, oldest first,
-    at least the last `SETTLED_WINDOW + 1`) whose cost fell over its last `SETTLED_WINDOW`
+    r"""A start stopped by `max_steps` (`verdict`, after `steps` steps; `history` its accepted costs, oldest first:
+    the last `SETTLED_WINDOW + 1` or more, else it is returned unchanged) whose cost fell over its last `SETTLED_WINDOW`
     accepted steps by less than moving one parameter by one standard error changes it, $\hat\sigma^2/2 =
     \text{cost}/(m - p)$ (the data-resolution bound of `fitting._stationarity.kink_ftol`, without its 1e-5 floor),
     has converged in practice: another as many steps at that rate would change nothing the data can resolve. As

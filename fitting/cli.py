@@ -607,10 +607,11 @@ def _check_memory(config, dataset, num_free: int) -> None:
 def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     """More fits from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the fit
     left without weight, above the largest voltage, or on the threshold of another, placed where the residual
-    needs them) and its creep lags moved where time constants elsewhere fit better (`ModelConfig.relocated_lags`),
-    each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered the cost by
-    more than `RESEED_GAIN` and left elements dead or lags misplaced again (plays pulled onto one kink of the
-    data's reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
+    needs them), or, when none is dead, one live element swapped where the residual needs it, and its creep lags
+    moved where time constants elsewhere fit better (`ModelConfig.relocated_lags`), each kept when its cost is
+    lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered the cost by more than `RESEED_GAIN` and
+    left elements dead, an element to swap or lags misplaced again (plays pulled onto one kink of the data's
+    reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
     re-seeded fit's last accepted point is kept if its cost is lower, and the result returned has code
     `"interrupted"` (its reason names the verdict of the fit kept). Returns the result kept and, for
     `result.json`, what was done (`None` when nothing was dead or misplaced; per round the plays re-seeded,

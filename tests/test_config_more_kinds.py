@@ -388,6 +388,14 @@ def test_a_live_play_in_a_worse_place_is_swapped_where_the_residual_needs_it():
     assert abs(r[3] - 80.0) < np.max(np.abs(v)) / 64 and np.all(w > 0)
     np.testing.assert_allclose(w, [0.3, 0.25, 0.2, 0.25], rtol=0.1)
     assert cfg.reseeded(cfg._constrain(fitted), ds, free) is None
+    # a single backlash play (`kind = "play"`, one play) left at 70 V moves to the plant's 30 V
+    one = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(pj.PrandtlIshlinskii(
+        jnp.array([0.4]), jnp.array([30.0]), w0=0.0)(jnp.asarray(v))))])
+    play = parse_config('[hysteresis]\nkind = "play"\n[state]\noffset = false\n', "play.toml")
+    wrong = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.4]), jnp.array([70.0]), w0=0.0))
+    moved_play, count = play.reseeded(play._constrain(wrong), one, play.fit_free(["displacement"]),
+                                      {"predictor": play.predictor(), "targets": None})
+    assert count == 1 and abs(float(pj.unwrap(moved_play).hysteresis.thresholds[0]) - 30.0) < np.max(np.abs(v)) / 64
     noisy = fitting.Dataset([fitting.Experiment.from_arrays(
         t=t, v_in=v, displacement=y + 0.05 * np.random.default_rng(3).standard_normal(t.size))])
     assert cfg.reseeded(cfg._constrain(pj.Actuator(truth)), noisy, free, args) is None
