@@ -463,7 +463,6 @@ class _PlayWeights:
         # unit columns: the choice does not depend on the weights' scales; a weight changes by step / d
         self.d = np.sqrt(np.maximum(np.diag(h), TINY))
         self.g, self.h = g / self.d, h / np.outer(self.d, self.d)
-        self.per_unit = 1.0 / self.d
         self.sse = float(np.sum(np.square(res)))
         position = np.empty_like(order)
         position[order] = np.arange(order.size)
@@ -488,7 +487,7 @@ class _PlayWeights:
         # in the unit columns' coordinates, to 0), minimised over delta_t
         i = without
         assert i not in t
-        a = self.w[i] / self.per_unit[i]
+        a = self.w[i] * self.d[i]
         g = self.g[t] - a * self.h[t, i]
         step = refit(g)
         return 2 * a * float(self.g[i]) - a * a * float(self.h[i, i]) - float(g @ step), step
@@ -554,7 +553,7 @@ def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float, 
         kept = [j for j in live if j != i]
         for c in lin.candidates:
             total, step = lin.decrease(kept + [c], without=i)
-            weights = lin.w[kept + [c]] + step * lin.per_unit[kept + [c]]
+            weights = lin.w[kept + [c]] + step / lin.d[kept + [c]]
             if np.all(weights > 0) and total - base > best_gain:
                 best, best_gain = (kept + [c], weights), total - base
     if best is None:

@@ -550,6 +550,20 @@ class _PlaySum(BlockKind):
     def from_swap_form(self, block, weights, thresholds):
         return _with_plays(block, weights, thresholds)
 
+    def reseed(self, o, block, max_input, place=None):
+        r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
+        leaves $[-(\max|v| - r), \max|v| - r]$), is below $10^{-3}$ of the operator's,
+        $|w_0|\max|v| + \sum_i w_i(\max|v| - r_i)^+$: a negligible weight, a threshold at or above $\max|v|$ (the
+        play never moves), or one just below it (a heavy play that moves by millivolts, measured on the independent
+        plant: a weight of 20 nm/V at 99.97 V of 100) — and plays whose thresholds coincide (closer than
+        `DUPLICATE_THRESHOLD` of $\max|v|$: the fit pulled them onto one kink of the data; they act as one, so the
+        heaviest keeps their summed weight and the others are freed) are moved to new thresholds at 1 % of the live
+        plays' mean weight (small, so the re-seeded model starts where the fit ended, and not zero, so the play's
+        threshold has a gradient). `place(thresholds, weights, n)` chooses the new thresholds (the command line:
+        where the residual needs them, `ModelConfig.reseeded`); without it, or for the plays it leaves, each goes
+        in turn to the middle of the widest gap between the thresholds on $[0, \max|v|]$."""
+        return _reseed_plays(block, max_input, place)
+
 
 class PrandtlIshlinskiiKind(_PlaySum):
     """`pj.PrandtlIshlinskii`: `plays` (≤ 100), `weights`, `thresholds`, `w0`, `smoothing`. Start:
@@ -589,20 +603,6 @@ class PrandtlIshlinskiiKind(_PlaySum):
 
     def cold_start_args(self, o, config):
         return {"n_plays": o["plays"]}
-
-    def reseed(self, o, block, max_input, place=None):
-        r"""Dead plays — whose largest possible output on the data, $w_i(\max|v| - r_i)^+$ (a play from rest never
-        leaves $[-(\max|v| - r), \max|v| - r]$), is below $10^{-3}$ of the operator's,
-        $|w_0|\max|v| + \sum_i w_i(\max|v| - r_i)^+$: a negligible weight, a threshold at or above $\max|v|$ (the
-        play never moves), or one just below it (a heavy play that moves by millivolts, measured on the independent
-        plant: a weight of 20 nm/V at 99.97 V of 100) — and plays whose thresholds coincide (closer than
-        `DUPLICATE_THRESHOLD` of $\max|v|$: the fit pulled them onto one kink of the data; they act as one, so the
-        heaviest keeps their summed weight and the others are freed) are moved to new thresholds at 1 % of the live
-        plays' mean weight (small, so the re-seeded model starts where the fit ended, and not zero, so the play's
-        threshold has a gradient). `place(thresholds, weights, n)` chooses the new thresholds (the command line:
-        where the residual needs them, `ModelConfig.reseeded`); without it, or for the plays it leaves, each goes
-        in turn to the middle of the widest gap between the thresholds on $[0, \max|v|]$."""
-        return _reseed_plays(block, max_input, place)
 
     def from_cold_start(self, o, block):
         return {"weights": np.asarray(block.weights), "thresholds": np.asarray(block.thresholds),
@@ -657,10 +657,6 @@ class PlayKind(_PlaySum):
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
 
-    def reseed(self, o, block, max_input, place=None):
-        """As `prandtl_ishlinskii`'s."""
-        return _reseed_plays(block, max_input, place)
-
 
 def _with_plays(block, weights, thresholds):
     return eqx.tree_at(lambda b: (b.weights, b.thresholds), block,
@@ -668,7 +664,7 @@ def _with_plays(block, weights, thresholds):
 
 
 def _reseed_plays(block, max_input: float, place=None):
-    """`block` with its dead and coinciding plays moved (see `PrandtlIshlinskiiKind.reseed`), or `None`. `place(
+    """`block` with its dead and coinciding plays moved (see `_PlaySum.reseed`), or `None`. `place(
     thresholds, weights, n)`, when given, proposes up to `n` thresholds for the freed plays from the live ones
     (`ModelConfig.reseeded`: where the residual needs them); the rest go to the widest gaps."""
     w, r = np.asarray(block.weights, float), np.asarray(block.thresholds, float)

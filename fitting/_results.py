@@ -386,8 +386,8 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
     diag = np.clip(np.diag(jtj), 0.0, None)
     # a lost column is judged in the start values' relative changes (value scaling), whatever the solver's scaling
     to_value = (np.asarray(problem.value_scales, float) / np.asarray(problem.scales, float)) ** 2
-    lost = lost_columns(diag * to_value) | ~(diag > 0)
-    c = np.where(lost, 1.0, np.sqrt(np.where(lost, 1.0, diag)))
+    lost = lost_columns(diag * to_value)  # zero columns too
+    c = np.where(lost, 1.0, np.sqrt(diag))
     scaled_jtj = jtj / np.outer(c, c)
     scaled_jtj[lost, :] = 0.0
     scaled_jtj[:, lost] = 0.0
