@@ -145,7 +145,8 @@ def stationarity_verdict(problem, u, lin: Linearisation, verdict: Verdict, *, in
                        f"converged at a kink of the cost (max |cos(r, J_i)| = {gradient_cosine:.2e} > gtol = "
                        f"{gtol:g} from one side's derivative, but the cost rises along ± each parameter, the "
                        f"gradient and the Gauss–Newton direction: steepest one-sided slope {slope:+.1e} in gtol's "
-                       "units; the exact, piecewise smooth model is not differentiable there)")
+                       "units: the cost is not differentiable there, as at a kink of an exact, piecewise smooth "
+                       "operator, or its curvature outweighs the computed gradient over the smallest probed step)")
     if kink_gain is not None and kink_gain < kink_ftol(m, p) and not nonfinite:
         return Verdict("converged_at_kink",
                        f"converged: the cost no longer decreases (the last restart past a kink lowered it by "
