@@ -81,7 +81,8 @@ class FitResult:
       ($\\tfrac12\\|r\\|^2$ of the weighted residuals), `history` (the start's and every accepted cost),
       `history_steps` (the step at which each was reached, counted over all levels), `seconds`, `levels` (per
       smoothing level).
-    - `parameter_names`, `values`, `std_errors`, `correlation`: the free parameters in physical units with their
+    - `parameter_names`, `values`, `std_errors`, `correlation` (and `covariance`, from the two): the free
+      parameters in physical units with their
       Gauss–Newton standard errors $\\sqrt{\\mathrm{diag}(D\\,s^2(J^\\top J)^{+}D^\\top)}$, $s^2 = \\|r\\|^2/(m - p)$,
       $D$ the Jacobian of the reparametrisation; `condition`: the condition number of $J^\\top J$ with its
       columns scaled to unit norm at the fitted point, the scaling in which the errors and the undetermined
@@ -139,6 +140,19 @@ class FitResult:
     targets: tuple[str, ...] = ()
     weights: dict[str, float] = dataclasses.field(default_factory=dict)
     dataset: Any = dataclasses.field(repr=False, default=None)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The covariance matrix of the free parameters in physical units (rows and columns as `parameter_names`),
+        `std_errors[i] * std_errors[j] * correlation[i, j]`: the Gauss–Newton covariance of the determined
+        parameters, NaN in the rows and columns of those whose `std_error_status` is not `"finite"`."""
+        se = np.asarray(self.std_errors, dtype=float)
+        finite = np.asarray(self.std_error_status) == "finite"
+        with np.errstate(invalid="ignore"):
+            cov = np.outer(se, se) * np.asarray(self.correlation, dtype=float)
+        cov[~finite, :] = np.nan
+        cov[:, ~finite] = np.nan
+        return cov
 
     def summary(self) -> dict:
         """A JSON-ready summary (everything but the models, the predictor and the data)."""

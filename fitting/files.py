@@ -545,7 +545,8 @@ def check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opti
         shown = ", ".join(repr(e) for e in added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
         raise PiezojaxValueError(
             f"{refusing}: it holds what "
-            f"`piezojax {kind}` did not write there ({shown}), which {option} would delete; move that out of the "
+            f"the earlier `piezojax {kind}`{' or `FitResult.save`' if kind == 'fit' else ''} did not write there "
+            f"({shown}), which {option} would delete; move that out of the "
             "folder, or choose another output folder"
         )
     if not overwrite:

@@ -231,8 +231,10 @@ class Actuator(eqx.Module):
           by per-sample root finding that saturates there; without, the analytic inverse where the operator has
           one (`PrandtlIshlinskii`, e.g. `MaxwellSlip.as_prandtl_ishlinskii(...)`), else a `PiezojaxValueError`.
         - `bandwidth`: $\omega_f$ [rad/s] of the low-pass that makes the dynamics' inverse proper (default: the
-          fastest pole of the dynamics; see `AbstractLinearSystem.inverse`).
-        - `relative_degree`: the dynamics' relative degree (default: computed; give it to build under `jit`).
+          fastest pole of the dynamics, which needs concrete values: give it to build under `jit`, `vmap` or
+          `grad`; see `AbstractLinearSystem.inverse`).
+        - `relative_degree`: the dynamics' relative degree (default: computed; give it to build under `jit`, `vmap`
+          or `grad`).
         - `iterations`: fixed-point iterations through the creep (default 20).
         - `preview`: read the reference ahead by the low-pass's delay (default True).
         - `max_iterations`: root-finding iterations per sample at most.

@@ -63,6 +63,13 @@ def test_redundant_pair_is_undetermined_and_the_rest_match_least_squares(tmp_pat
     assert result.values[i] == pytest.approx(coef[1], rel=1e-9)
     assert result.std_errors[i] == pytest.approx(se_ref[1], rel=1e-6)
     assert np.isnan(result.correlation[0, 2]) and result.correlation[2, 2] == 1.0
+    assert np.all(np.isnan(result.covariance[:2])) and np.all(np.isnan(result.covariance[:, :2]))
+    assert result.covariance[2, 2] == pytest.approx(se_ref[1] ** 2, rel=1e-6)
+    # with the pair's redundancy removed (b fixed), the whole covariance is numpy's s^2 (X^T X)^-1
+    full = fitting.fit(_model(), _dataset(y), predictor=_predictor(), free=["a", "c"],
+                       weights={"displacement": 1.0}, max_steps=50)
+    cov_ref = float(res[0]) / (N - 2) * np.linalg.inv(X.T @ X)
+    np.testing.assert_allclose(full.covariance, cov_ref, rtol=1e-6)
     # result.json tells the cases apart (JSON has no inf)
     result.save(tmp_path / "fit")
     saved = json.loads((tmp_path / "fit" / "result.json").read_text())["parameters"]

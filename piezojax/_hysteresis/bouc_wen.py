@@ -129,8 +129,8 @@ class BoucWen(AbstractHysteresis):
     - `method="closed_form"` ($n = 1$, `smoothing` 0): $f$ is affine on each side of $w = 0$ (rate
       $\beta + \gamma$ above, $\beta - \gamma$ below), so each step is solved exactly, with
       `expm1`/`log1p` formulas that are safe for zero or negative rates; the trajectory crosses $w =
-      0$ at most once per step. `n` is not used (fixed at 1, zero gradient): use `method="rk4"` to
-      fit `n`.
+      0$ at most once per step. `n` must be 1 (a `PiezojaxValueError`, under `jit`/`vmap`
+      an `EquinoxRuntimeError`, otherwise) and its gradient is zero: use `method="rk4"` to fit `n`.
     - `method="rk4"`: `substeps` classical RK4 steps of size $h = |\Delta v|/$`substeps` per sample,
       any $n > 0$ and any `smoothing`. $f$ is smooth except at $w = 0$, so the error is $O(h^4)$
       while $z$ keeps its sign and larger in the sub-steps where $z$ changes sign (kink of $f$; for
