@@ -66,7 +66,10 @@ class Actuator(eqx.Module):
     use). Its output at $V = 0$ is the remanent value $h_r$; the creep (series: settled at its input $h_r$; parallel:
     at rest, its input $V$ is 0) and the dynamics (settled at its input $u_r$) start in equilibrium, so the model
     reads $\delta = b + G(0)\,u_r + G[u - u_r]$ with $b$ = `offset`, the displacement sensor's zero (it does not
-    enter the charge). With neither a prehistory nor a state, $h_r = u_r = 0$ and the model starts from rest.
+    enter the charge). With neither a prehistory nor a state, $h_r$ is the demagnetised operator's output at
+    $V = 0$: 0 for the operators that `rests_at_zero` (play, stop, PI, Maxwell slip, Bouc–Wen), where $u_r = 0$ and
+    the model starts from rest, not necessarily for others (a Preisach operator's $c + \sum_i \mu_i R_i$), where
+    the creep and the dynamics start settled at it as after a prehistory.
 
     Charge and current (paper 003 after Goldfarb & Celanovic, $q = C V_p + T_{em} x$; paper 000 $Q = C_r V_{in} +
     Q_\delta$ with $Q_\delta \propto \delta$): $q_k = C_p V_k + T\,\delta_k$, so the displacement-coupled charge
@@ -174,7 +177,8 @@ class Actuator(eqx.Module):
     def initial_state(self) -> tuple[PyTree[Array] | None, Array]:
         """The hysteresis state at the start of the record and the remanent hysteresis output $h_r$ at $V = 0$.
 
-        **Returns:** `(state, h_r)`; `(None, 0)` when the actuator starts from rest (no prehistory, no state).
+        **Returns:** `(state, h_r)`; `(None, 0)` when the actuator starts from rest (no prehistory, no state, and
+        an operator that `rests_at_zero` or none).
         """
         return self._initial(module_float_dtype(self))
 
@@ -262,8 +266,11 @@ class Actuator(eqx.Module):
 
     def _initial(self, dtype):
         zero = jnp.zeros((), dtype)
-        if self.hysteresis is None or (self.prehistory is None and self.hysteresis_state is None):
+        if self.hysteresis is None or (self.prehistory is None and self.hysteresis_state is None
+                                       and self.hysteresis.rests_at_zero):
             return None, zero
+        # settled at the operator's output at V = 0: after a prehistory, from a given state, or demagnetised for
+        # an operator whose output is not 0 there (`rests_at_zero`, e.g. a Preisach operator)
         path = jnp.zeros((1,), dtype)
         if self.prehistory is not None:
             path = jnp.stack([self.prehistory.astype(dtype), zero])

@@ -61,6 +61,35 @@ def test_prehistory_matches_independent_reference(u_p):
     np.testing.assert_allclose(float(hr), h_r, atol=1e-12)
 
 
+def test_demagnetised_preisach_starts_settled_at_its_output_at_zero():
+    # a demagnetised Preisach operator's output at V = 0 is c + sum mu_i R_i, not 0 here: before the record the
+    # dynamics sat at it (the voltage had been 0 long enough), so nothing rings at t = 0
+    op = pj.Preisach.uniform(-45.0, 45.0, 3, mu=jnp.array([0.9, 0.1, 0.3, 0.2, 0.5, 0.05]), offset=0.3)
+    assert not op.rests_at_zero and pi().rests_at_zero
+    alpha, beta, mu = (np.asarray(x) for x in (op.alpha, op.beta, op.mu))
+    relays = -np.sign(alpha + beta)  # the staircase alpha + beta = 0
+    h, prev = np.empty_like(V), 0.0
+    for k, vk in enumerate(V):
+        # a relay with alpha = beta reached exactly takes the direction of travel (unchanged at rest)
+        up = (vk > alpha) | ((vk == alpha) & ((alpha > beta) | (vk > prev)))
+        down = (vk < beta) | ((vk == beta) & ((alpha > beta) | (vk < prev)))
+        relays, prev = np.where(up, 1.0, np.where(down, -1.0, relays)), vk
+        h[k] = 0.3 + mu @ relays
+    h_r = 0.3 + mu @ -np.sign(alpha + beta)
+    assert abs(h_r) > 0.2
+    act = pj.Actuator(op, None, dynamics(), offset=2.5)
+    x = np.asarray(act(V, DT).displacement)
+    ref = 2.5 + lsim_settled([OMEGA**2], [1, 2 * ZETA * OMEGA, OMEGA**2], h, h_r)
+    np.testing.assert_allclose(x, ref, rtol=0, atol=1e-9 * np.ptp(ref))
+    np.testing.assert_allclose(x[:50], 2.5 + h_r, atol=1e-12)  # at rest before the drive
+    assert float(act.initial_state()[1]) == pytest.approx(h_r, abs=1e-12)
+    # the same with the demagnetised state given explicitly, and with creep in series (settled at h_r too)
+    given = pj.Actuator(op, None, dynamics(), offset=2.5, hysteresis_state=op.init())
+    np.testing.assert_allclose(given(V, DT).displacement, x, atol=1e-12)
+    series = pj.Actuator(op, pj.LagCreep([0.3], [0.05]), dynamics(), structure="series")
+    np.testing.assert_allclose(series(V, DT).displacement[:50], h_r, atol=1e-12)
+
+
 def test_explicit_state_equals_prehistory_and_rest_is_default():
     state, _ = pi().scan(jnp.asarray([-50.0, 0.0]))
     a = pj.Actuator(pi(), None, dynamics(), prehistory=-50.0)

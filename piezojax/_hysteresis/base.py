@@ -42,6 +42,14 @@ class AbstractHysteresis(AbstractCell):
     def init(self) -> PyTree[Array]:
         """The relaxed (demagnetised) initial state, with the input at 0."""
 
+    @property
+    def rests_at_zero(self) -> bool:
+        """Whether the output in the initial state `init()` at input 0 is 0 for every parameter value (the play
+        and stop operators, PI, Maxwell slip, Bouc–Wen). `pj.Actuator` then starts from rest without running the
+        operator; otherwise (default, e.g. a Preisach operator, whose demagnetised output $c + \\sum_i \\mu_i
+        R_i$ need not vanish) it settles the creep and the dynamics at that output before the record."""
+        return False
+
     @abc.abstractmethod
     def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
         """Advance from the state's previous input to the input sample `v`; return `(state, y)`."""
@@ -167,6 +175,11 @@ class AbstractOutputMap(AbstractHysteresis):
 
     def init(self) -> PyTree[Array]:
         return self.hysteresis.init()
+
+    @property
+    def rests_at_zero(self) -> bool:
+        """The wrapped operator's: every wrapper's static map sends 0 to 0."""
+        return self.hysteresis.rests_at_zero
 
     def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
         state, h = self.hysteresis.step(state, v)

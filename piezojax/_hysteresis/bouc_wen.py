@@ -283,6 +283,10 @@ class BoucWen(AbstractHysteresis):
         params = check_value(tuple(getattr(self, name) for name in _PARAMS), ok, messages)
         return eqx.tree_at(lambda m: tuple(getattr(m, name) for name in _PARAMS), self, params)
 
+    @property
+    def rests_at_zero(self) -> bool:
+        return True
+
     def init(self, v0: ScalarLike = 0.0, z0: ScalarLike = 0.0) -> Float[Array, "2"]:
         """The state `[v_prev, z]`; by default relaxed ($z = 0$) with the input at 0.
 

@@ -122,6 +122,10 @@ class MaxwellSlip(AbstractHysteresis):
             lambda m: (m.stiffness, m.breakaway, m.smoothing), self, (k, f, error_if_bad_smoothing(self.smoothing))
         )
 
+    @property
+    def rests_at_zero(self) -> bool:
+        return True
+
     def init(self) -> tuple[Array, Array]:
         """Relaxed state `(previous input, spring elongations) = (0, 0)`."""
         dtype = self.stiffness.dtype

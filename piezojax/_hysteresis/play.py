@@ -545,6 +545,10 @@ class _AbstractPlainStopCell(_AbstractStopCell):
     """The play and stop operators: the checks of `thresholds` and `smoothing`, the loop of `stop_scan` and the
     root-finding inverse (final here)."""
 
+    @property
+    def rests_at_zero(self) -> bool:
+        return True
+
     def check(self):
         return eqx.tree_at(
             lambda m: (m.thresholds, m.smoothing),
