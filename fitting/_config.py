@@ -254,7 +254,21 @@ class ModelConfig:
             out += [f"[{table}] {k}" for k in self.kind(table).required(o) if o.get(k) is None]
             if table == "hysteresis" and self.polynomial and o.get("coefficients") is None:
                 out.append("[hysteresis] coefficients")
-        return out + self.model_kind.missing(self)
+        return out + self.model_kind.missing(self) + list(self.data_derived())
+
+    def data_derived(self) -> dict[str, str]:
+        """The scales the file does not give that a fit takes from its data and keeps fixed (the output polynomial's
+        `polynomial_scale`, a parallel logarithmic creep's `gain`), as `{"[table] key": model path}`: a fit
+        reports their values (`result.json` → `cli.data_derived`), and a forward simulation needs them given."""
+        out = {}
+        if self.polynomial and self.hysteresis_options.get("polynomial_scale") is None:
+            out["[hysteresis] polynomial_scale"] = "hysteresis.scale"  # the output polynomial's own leaf
+        for table in self._block_tables():
+            o = self.options(table)
+            for k in self.kind(table).data_derived(o, self):
+                if o.get(k) is None:
+                    out[f"[{table}] {k}"] = f"{self._block_path(table)}.{k}"
+        return out
 
     def build(self, dataset=None, *, require_values: bool = False):
         """The model this configuration describes, with its constrained parameters reparametrised for fitting.
@@ -272,8 +286,11 @@ class ModelConfig:
         if require_values:
             missing = self.missing_values()
             if missing:
+                derived = [k for k in missing if k in self.data_derived()]
                 raise PiezojaxValueError(
                     f"{self.source}: forward simulation needs every parameter value; missing: {', '.join(missing)}"
+                    + (f" ({', '.join(derived)}: a scale a fit takes from its data; `piezojax fit` reports its value "
+                       "in report.txt and in result.json under cli.data_derived)" if derived else "")
                 )
         if dataset is None:
             return self._constrain(self._assemble(None))

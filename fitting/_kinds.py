@@ -377,6 +377,11 @@ class BlockKind:
         """The parameters a forward simulation needs from the file (default: all)."""
         return self.parameters(o)
 
+    def data_derived(self, o: dict, config) -> tuple[str, ...]:
+        """Parameters outside `required` that a fit, when the file omits them, sets from its data and keeps fixed
+        (a scale): a forward simulation needs them too (default: none)."""
+        return ()
+
     def placeholder(self, o: dict) -> dict:
         """Values of the right shapes for every parameter, without data."""
         return {}
@@ -980,6 +985,12 @@ class LogarithmicKind(BlockKind):
 
     def optional_start(self, o, data):
         return self.placeholder(o) | {"gain": _creep_gain(data)}
+
+    def data_derived(self, o, config):
+        # 1 (the placeholder) only where the creep acts on a signal in the output's units, as `_creep_gain`
+        unit = config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics
+        series = config.creep_structure == "series" and not config.hysteresis_kind.empty
+        return () if unit or series else ("gain",)
 
     def build(self, o, v, config):
         return pj.LogarithmicCreep(f64(v["gamma"]), f64(v["t0"]), gain=f64(v["gain"]),

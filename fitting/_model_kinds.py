@@ -276,12 +276,16 @@ class ActuatorModel(_WithState):
             return cap, coup
         if data is None:
             return (1e-9 if cap is None else cap), (0.0 if coup is None else coup)
-        # q = C v + T δ by least squares over the experiments that measured the charge (and the displacement)
+        # q = C v + T δ by least squares over the experiments that measured the charge (and the displacement), or
+        # the current: the model's i_k = (q_k - q_{k-1})/dt from q_{-1} = 0 at rest, so q_k = dt (i_0 + ... + i_k)
         rows, rhs = [], []
         for e in data.dataset:
-            if not e.has("charge"):
+            if e.has("charge"):
+                q = np.asarray(e["charge"])
+            elif e.has("current"):
+                q = e.dt * np.cumsum(np.asarray(e["current"]))
+            else:
                 continue
-            q = np.asarray(e["charge"])
             d = np.asarray(e["displacement"]) if e.has("displacement") else np.zeros_like(q)
             if cap is not None:
                 q = q - cap * np.asarray(e.v_in)
@@ -293,7 +297,7 @@ class ActuatorModel(_WithState):
         if not rows:
             raise PiezojaxValueError(
                 f"{config.source}: [charge]: give 'capacitance' and 'coupling' explicitly, or fit on data "
-                "files with a 'charge' column")
+                "files with a 'charge' or 'current' column")
         coef = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
         i = 0
         if cap is None:

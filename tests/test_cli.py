@@ -482,6 +482,22 @@ def test_config_defaults_and_free_sets():
     assert cfg.method == "levenberg_marquardt"
 
 
+def test_charge_start_from_a_measured_current():
+    # records with the current but not the charge: the start integrates it (q_k = dt (i_0 + ... + i_k), the model's
+    # definition of the current) and finds C and T by least squares
+    pi = pj.PrandtlIshlinskii(jnp.asarray([0.3e-7, 0.2e-7]), jnp.asarray([10.0, 30.0]), w0=jnp.asarray(1e-7))
+    truth = pj.Actuator(pi, capacitance=2e-7, coupling=3.0)
+    t = np.arange(800) * DT
+    v = 50 * np.sin(2 * np.pi * 2 * t) * np.minimum(1.0, t / 0.1)
+    out = truth(jnp.asarray(v), DT)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(out.displacement),
+                                                         current=np.asarray(out.current))])
+    start = pj.unwrap(parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\n[charge]\n', "m.toml")
+                      .build(ds))
+    assert float(start.capacitance) == pytest.approx(2e-7, rel=1e-6)
+    assert float(start.coupling) == pytest.approx(3.0, rel=1e-6)
+
+
 def test_config_state_polynomial_and_lag_creep_build_the_composed_actuator():
     text = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 4\npolynomial = 3\n[creep]\nkind = "lag"\nlags = 2\n'
             '[dynamics]\norder = 2\n[state]\nprehistory = -20.0\noffset = 1e-7\n')
@@ -504,6 +520,45 @@ def test_config_state_polynomial_and_lag_creep_build_the_composed_actuator():
     with pytest.raises(pj.PiezojaxValueError, match=r"\[state\] prehistory"):
         parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nweights = [1.0]\nthresholds = [1.0]\nplays = 1\n'
                      'w0 = 1.0\n[state]\nprehistory = true\n', "m.toml").build(None, require_values=True)
+
+
+def test_scales_taken_from_the_data_are_reported_and_needed_to_simulate(tmp_path, capsys):
+    # a parallel logarithmic creep's gain and an output polynomial's scale are fixed at values from the fit's data:
+    # a fit reports them, and a forward simulation refuses to guess them (the placeholder gain 1 V/V was 1e5 times
+    # the scale of a real actuator's m/V)
+    text = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\npolynomial = 2\n[creep]\nkind = "logarithmic"\n'
+            '[dynamics]\norder = 0\n')
+    cfg = parse_config(text, "m.toml")
+    assert cfg.data_derived() == {"[hysteresis] polynomial_scale": "hysteresis.scale", "[creep] gain": "creep.gain"}
+    # series after the hysteresis, the creep acts on the output itself: its gain is 1 by convention, not derived
+    series = parse_config(text.replace('"logarithmic"', '"logarithmic"\nstructure = "series"'), "m.toml")
+    assert list(series.data_derived()) == ["[hysteresis] polynomial_scale"]
+    given = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 1\nweights = [1e-8]\nthresholds = [5.0]\n'
+             'w0 = 5e-8\npolynomial = 2\ncoefficients = [0.1]\n[creep]\nkind = "logarithmic"\ngamma = 0.01\n'
+             't0 = 0.01\n')
+    with pytest.raises(pj.PiezojaxValueError, match=r"missing: \[hysteresis\] polynomial_scale, \[creep\] gain.*"
+                                                    r"cli\.data_derived"):
+        parse_config(given, "m.toml").build(None, require_values=True)
+    ok = given.replace("[creep]", "polynomial_scale = 1e-6\n[creep]") + "gain = 2e-7\n"
+    model = pj.unwrap(parse_config(ok, "m.toml").build(None, require_values=True))
+    assert float(model.creep.gain) == 2e-7 and float(model.hysteresis.scale) == 1e-6
+    # the fit's values, in result.json and in the report
+    t = np.arange(600) * DT
+    v = 40 * np.sin(2 * np.pi * 2 * t)
+    x = np.asarray(pj.unwrap(parse_config(ok, "m.toml").build(None))(jnp.asarray(v), DT).displacement)
+    _write_csv(tmp_path / "r.csv", ["t", "v_in", "displacement"], [t, v, x])
+    (tmp_path / "m.toml").write_text(text)
+    out = tmp_path / "fit"
+    assert main(["fit", str(tmp_path / "m.toml"), str(tmp_path / "r.csv"), "--out", str(out), "--quiet",
+                 "--no-figures", "--max-steps", "3"]) in (0, 1)
+    derived = json.loads((out / "result.json").read_text())["cli"]["data_derived"]
+    fitted = fitting.load_model(out, like=cfg.build(None))
+    assert derived == {"[hysteresis] polynomial_scale": float(fitted.hysteresis.scale),
+                       "[creep] gain": float(fitted.creep.gain)}
+    assert 1e-9 < derived["[creep] gain"] < 1e-6  # the data's m/V, not the placeholder 1
+    report = (out / "report.txt").read_text()
+    assert f"[creep] gain = {derived['[creep] gain']!r}" in report
+    capsys.readouterr()
 
 
 def test_config_starts_offset_and_prehistory_from_the_data():

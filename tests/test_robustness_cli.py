@@ -543,6 +543,20 @@ def test_overwrite_replaces_only_its_own_output(bench, tmp_path, capsys):
     capsys.readouterr()
 
 
+def test_window_after_the_records_start_warns_that_the_model_starts_from_rest(bench, tmp_path, capsys):
+    d = bench
+    half = N * DT / 2
+    argv = ["fit", str(d / "pi.toml"), str(d / "ok.csv"), "--max-steps", "2", "--quiet", "--no-figures"]
+    assert main([*argv, "--window", f"{half}:", "--out", str(tmp_path / "late")]) in (0, 1)
+    err = capsys.readouterr().err
+    assert f"warning: --window {half}:" in err and "starts from rest at the window's start" in err
+    warnings = json.loads((tmp_path / "late" / "result.json").read_text())["warnings"]
+    assert any("not run as history" in w for w in warnings)
+    # a window from the record's start does not warn
+    assert main([*argv, "--window", f":{half}", "--out", str(tmp_path / "early")]) in (0, 1)
+    assert "--window" not in capsys.readouterr().err
+
+
 def test_fitresult_save_overwrites_only_a_fit_folder(bench, tmp_path):
     other = tmp_path / "mine"
     other.mkdir()
