@@ -254,20 +254,38 @@ class ModelConfig:
             out += [f"[{table}] {k}" for k in self.kind(table).required(o) if o.get(k) is None]
             if table == "hysteresis" and self.polynomial and o.get("coefficients") is None:
                 out.append("[hysteresis] coefficients")
-        return out + self.model_kind.missing(self) + list(self.data_derived())
+        out += self.model_kind.missing(self)
+        return out + [k for k in self.data_derived() if k not in out]
 
-    def data_derived(self) -> dict[str, str]:
-        """The scales the file does not give that a fit takes from its data and keeps fixed (the output polynomial's
-        `polynomial_scale`, a parallel logarithmic creep's `gain`), as `{"[table] key": model path}`: a fit
-        reports their values (`result.json` → `cli.data_derived`), and a forward simulation needs them given."""
+    def data_derived(self) -> list[str]:
+        """The values the file does not give that a fit takes from its data and keeps fixed (the output
+        polynomial's `polynomial_scale`, a parallel logarithmic creep's `gain`, a Preisach grid's `range`), as
+        `"[table] key"`: a fit reports them (`derived_values`; `result.json` → `cli.data_derived`), and a forward
+        simulation needs them given."""
+        return list(self._derived())
+
+    def derived_values(self, model) -> dict:
+        """The values of `data_derived` in `model` (unwrapped), by their CONFIG names, as CONFIG would give them."""
+        out = {}
+        for label, (table, key) in self._derived().items():
+            if table is None:  # the output polynomial's scale
+                out[label] = float(np.asarray(model.hysteresis.scale))
+                continue
+            block = model
+            for name in self._block_path(table).split("."):
+                block = getattr(block, name)
+            out[label] = self.kind(table).derived_value(self.options(table), key, block)
+        return out
+
+    def _derived(self) -> dict[str, tuple[str | None, str]]:
         out = {}
         if self.polynomial and self.hysteresis_options.get("polynomial_scale") is None:
-            out["[hysteresis] polynomial_scale"] = "hysteresis.scale"  # the output polynomial's own leaf
+            out["[hysteresis] polynomial_scale"] = (None, "polynomial_scale")
         for table in self._block_tables():
             o = self.options(table)
             for k in self.kind(table).data_derived(o, self):
                 if o.get(k) is None:
-                    out[f"[{table}] {k}"] = f"{self._block_path(table)}.{k}"
+                    out[f"[{table}] {k}"] = (table, k)
         return out
 
     def build(self, dataset=None, *, require_values: bool = False):

@@ -196,6 +196,9 @@ class Experiment:
     - `channels`: mapping from names in `CHANNELS` to measured signals (any subset, possibly empty).
     - `name`: the experiment's name (unique inside a `Dataset`).
     - `source`: the file it was loaded from, if any (used in error messages).
+    - `scored_from`: a time [s] within the record, or `None` (default): a fit scores only the samples from it on;
+      the model still runs over the samples before it, from rest at the record's start, so they are its history
+      (`piezojax fit --window START:STOP`). At least 2 samples must be scored.
 
     **Returns:**
 
@@ -212,6 +215,7 @@ class Experiment:
     channels: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     name: str = "experiment"
     source: str | None = None
+    scored_from: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -294,6 +298,16 @@ class Experiment:
         if np.max(np.abs(d - dt)) > 1e-9 * dt:  # rounded stamps: the grid they stand for
             t = t[0] + dt * np.arange(n, dtype=np.float64)
             t[-1] = cols["t"][-1]
+        if self.scored_from is not None:
+            s = self.scored_from
+            if isinstance(s, bool) or not isinstance(s, (int, float, np.integer, np.floating)) or not np.isfinite(s):
+                raise PiezojaxValueError(f"{label}: `scored_from` must be a finite time in seconds or None, got {s!r}")
+            first = int(np.searchsorted(t, float(s) - _SLICE_RTOL * dt, side="left"))
+            if n - first < 2:
+                raise PiezojaxValueError(f"{label}: `scored_from` = {float(s):.6g} s leaves {max(n - first, 0)} "
+                                         f"scored sample(s) of the record [{t[0]:.6g}, {t[-1]:.6g}] s; at least 2 are "
+                                         "needed")
+            object.__setattr__(self, "scored_from", None if first == 0 else float(s))
         object.__setattr__(self, "t", _readonly(t))
         object.__setattr__(self, "v_in", _readonly(cols["v_in"]))
         chans = {k: _readonly(cols[k]) for k in CHANNELS if k in cols}
@@ -301,7 +315,7 @@ class Experiment:
 
     def __reduce__(self):
         # The read-only channel mapping is not picklable itself; rebuild (and revalidate) from plain values.
-        return (Experiment, (self.t, self.v_in, dict(self.channels), self.name, self.source))
+        return (Experiment, (self.t, self.v_in, dict(self.channels), self.name, self.source, self.scored_from))
 
     def _label(self) -> str:
         if self.source is not None:
@@ -358,6 +372,13 @@ class Experiment:
         return int(self.t.shape[0])
 
     @property
+    def first_scored(self) -> int:
+        """The index of the first sample a fit scores (`scored_from`; 0 when it is `None`)."""
+        if self.scored_from is None:
+            return 0
+        return int(np.searchsorted(self.t, self.scored_from - _SLICE_RTOL * self.dt, side="left"))
+
+    @property
     def dt(self) -> float:
         """Sampling step [s], $(t_{n-1} - t_0)/(n-1)$."""
         return float((self.t[-1] - self.t[0]) / (self.n - 1))
@@ -412,7 +433,8 @@ class Experiment:
 
         **Returns:**
 
-        A new `Experiment` with at least 2 samples (else `PiezojaxValueError`).
+        A new `Experiment` with at least 2 samples (else `PiezojaxValueError`), scored from `scored_from` where that
+        lies after `start`.
         """
         tol = _SLICE_RTOL * self.dt
         i0 = 0 if start is None else int(np.searchsorted(self.t, float(start) - tol, side="left"))
@@ -426,17 +448,20 @@ class Experiment:
             )
         if name is None:
             name = f"{self.name}[{'' if start is None else f'{start:g}'}:{'' if stop is None else f'{stop:g}'}]"
+        keep = self.scored_from is not None and i0 < self.first_scored
         return Experiment(
             t=self.t[i0:i1],
             v_in=self.v_in[i0:i1],
             channels={k: v[i0:i1] for k, v in self.channels.items()},
             name=name,
             source=self.source,
+            scored_from=self.scored_from if keep else None,
         )
 
     def __repr__(self) -> str:
         chans = ", ".join(self.channels) or "none"
-        return f"Experiment({self.name!r}, n={self.n}, dt={self.dt:.6g} s, channels: {chans})"
+        scored = "" if self.scored_from is None else f", scored from t = {self.scored_from:.6g} s"
+        return f"Experiment({self.name!r}, n={self.n}, dt={self.dt:.6g} s, channels: {chans}{scored})"
 
 
 # ----------------------------------------------------------------------------------------------------------- loading

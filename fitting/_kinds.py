@@ -378,9 +378,14 @@ class BlockKind:
         return self.parameters(o)
 
     def data_derived(self, o: dict, config) -> tuple[str, ...]:
-        """Parameters outside `required` that a fit, when the file omits them, sets from its data and keeps fixed
-        (a scale): a forward simulation needs them too (default: none)."""
+        """Values that a fit, when the file omits them, sets from its data and keeps fixed (a scale, a grid): a
+        forward simulation needs them, and a fit reports them (`derived_value`; default: none)."""
         return ()
+
+    def derived_value(self, o: dict, key: str, block):
+        """The value of `key` (one of `data_derived`) in the built `block`, as the file would give it (default: the
+        block's leaf of that name, a float)."""
+        return float(np.asarray(getattr(block, key)))
 
     def placeholder(self, o: dict) -> dict:
         """Values of the right shapes for every parameter, without data."""
@@ -872,6 +877,17 @@ class PreisachKind(BlockKind):
     def placeholder(self, o):
         n = o["levels"]
         return {"mu": np.zeros(n * (n + 1) // 2), "range": (-1.0, 1.0)}
+
+    def data_derived(self, o, config):
+        return ("range",)
+
+    def derived_value(self, o, key, block):
+        # `Preisach.uniform` puts the relays at the centres of n x n cells of side h on [v_min, v_max]: the largest
+        # alpha is v_max - h/2, the smallest beta v_min + h/2 (one level: any range with that centre)
+        n = o["levels"]
+        top, bottom = float(np.max(np.asarray(block.alpha))), float(np.min(np.asarray(block.beta)))
+        h = (top - bottom) / (n - 1) if n > 1 else 1.0
+        return [bottom - h / 2, top + h / 2]
 
     def start(self, o, data):
         vmax = 1.05 * data.max_input()

@@ -611,7 +611,9 @@ class Problem:
                 channels={c: jnp.asarray(np.stack([pad(e.channels[c]) for e in exps]), dtype) for c in inputs},
             )
             targets = {c: jnp.asarray(np.stack([pad(e.channels[c]) for e in exps]), dtype) for c in chans}
-            masks = {c: jnp.asarray(np.stack([np.arange(n) < e.n for e in exps])) for c in chans}
+            # the padding, and the history before `scored_from`, are run but not scored
+            masks = {c: jnp.asarray(np.stack([(np.arange(n) < e.n) & (np.arange(n) >= e.first_scored) for e in exps]))
+                     for c in chans}
             groups.append(_Group(data, targets, masks, tuple(idx), tuple(e.n for e in exps)))
         return groups
 
@@ -701,7 +703,8 @@ class Problem:
 
     def experiment_errors(self, r) -> list[dict[str, np.ndarray]]:
         """Per experiment (dataset order), the prediction errors (predicted − measured, in channel units, unpadded
-        NumPy arrays) of each target channel, from a weighted residual vector `r` in the layout of `residuals`."""
+        NumPy arrays, from the experiment's `first_scored` sample on) of each target channel, from a weighted
+        residual vector `r` in the layout of `residuals`."""
         r = np.asarray(r)
         if r.shape != (sum(int(np.prod(m.shape)) for g in self.core.groups for m in g.masks.values()),):
             raise PiezojaxValueError(f"`r` must be a residual vector of this problem, got shape {r.shape}")
@@ -714,7 +717,7 @@ class Problem:
                 block = r[k : k + e * n].reshape(e, n) / weights[c]
                 k += e * n
                 for j, (i, length) in enumerate(zip(g.index, g.lengths)):
-                    out[i][c] = block[j, :length]
+                    out[i][c] = block[j, self.dataset[i].first_scored:length]
         return out
 
     def experiment_predictions(self, u: Float[Array, " p"]) -> list[dict[str, np.ndarray]]:

@@ -452,7 +452,7 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
     # the errors are the residuals unweighted: no further simulation
     metrics = {}
     for exp, errors in zip(problem.dataset, problem.experiment_errors(r)):
-        metrics[exp.name] = {c: _metrics(e, exp.channels[c]) for c, e in errors.items()}
+        metrics[exp.name] = {c: _metrics(e, exp.channels[c][exp.first_scored:]) for c, e in errors.items()}
     params = problem.params(u)
     return FitResult(
         model=pj.unwrap(params),

@@ -188,8 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     _data_options(fit, "CONFIG")
     fit.add_argument("--window", metavar="START:STOP",
                      help="fit only the samples with START <= t < STOP [s] of every file (either side may be empty, "
-                     "e.g. :7 for the first 7 s); score the rest with `piezojax predict ... --score-from 7`. The "
-                     "model starts from rest at START: the samples before it are dropped, not run as history")
+                     "e.g. :7 for the first 7 s); the samples before START are run as the model's history, not scored; "
+                     "score the rest with `piezojax predict ... --score-from 7`")
     fit.add_argument("--no-figures", action="store_true", help="do not write the PNG figures")
     fit.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -510,18 +510,9 @@ def _load_data(paths, settings: dict, group_option: str | None):
     return dataset, messages
 
 
-def _data_derived(config, result) -> dict[str, float]:
-    """The values of `config.data_derived()` in the fitted model, by their CONFIG names (`"[creep] gain"`)."""
-    import numpy as np
-
-    from ._problem import parameter_paths
-
-    values = parameter_paths(result.params)
-    return {k: float(np.asarray(values[path])) for k, path in config.data_derived().items() if path in values}
-
-
 def _windowed(dataset, window: str):
-    """Every experiment of `dataset` cut to `START <= t < STOP` (`--window START:STOP`, seconds)."""
+    """Every experiment of `dataset` scored on `START <= t < STOP` (`--window START:STOP`, seconds): cut at STOP,
+    and scored from START (`Experiment.scored_from`), the samples before it run as the model's history."""
     import fitting
 
     start, sep, stop = window.partition(":")
@@ -534,7 +525,13 @@ def _windowed(dataset, window: str):
     from piezojax._checks import PiezojaxValueError
 
     try:
-        return fitting.Dataset([e.slice(*bounds, name=e.name) for e in dataset])
+        out = []
+        for e in dataset:
+            part = e.slice(*bounds, name=e.name)  # the window's own checks (at least 2 samples in it)
+            whole = e.slice(None, bounds[1], name=e.name)
+            out.append(part if part.t[0] == whole.t[0] else fitting.Experiment(
+                whole.t, whole.v_in, dict(whole.channels), e.name, e.source, scored_from=float(part.t[0])))
+        return fitting.Dataset(out)
     except PiezojaxValueError as e:
         raise _error(f"--window {window}: {e}") from e
 
@@ -735,17 +732,7 @@ def _cmd_fit(args) -> int:
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
         dataset, unit_warnings = _load_data(args.data, settings, args.group)
         if args.window is not None:
-            first = [e.t[0] for e in dataset]
             dataset = _windowed(dataset, args.window)
-            late = [e for e, t0 in zip(dataset, first) if e.t[0] > t0 + 0.5 * e.dt]
-            if late:
-                message = (f"--window {args.window}: the model starts from rest at the window's start ({late[0].name} "
-                           f"at t = {late[0].t[0]:.6g} s); the samples before it are dropped, not run as history, so "
-                           "an actuator still moving or creeping there biases the fit: start the window where it is "
-                           "at rest, or fit from the record's start (--window :STOP) and score a later part with "
-                           "`piezojax predict --score-from`")
-                _info(f"warning: {message}")
-                unit_warnings = [*unit_warnings, message]
         targets = config.fit_targets(dataset)
         if isinstance(config.weights, dict):
             lacking = [c for c in targets if c not in config.weights]
@@ -808,7 +795,7 @@ def _cmd_fit(args) -> int:
             extra["cli"]["reseeded"] = reseeded
         hints = _lack_of_fit_hints(config, result)
         extra["cli"]["hints"] = hints
-        derived = _data_derived(config, result)
+        derived = config.derived_values(result.model)
         extra["cli"]["data_derived"] = derived
         lines = [f"  {k} = {v!r}" for k, v in derived.items()]
         if lines:

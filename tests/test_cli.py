@@ -529,10 +529,20 @@ def test_scales_taken_from_the_data_are_reported_and_needed_to_simulate(tmp_path
     text = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\npolynomial = 2\n[creep]\nkind = "logarithmic"\n'
             '[dynamics]\norder = 0\n')
     cfg = parse_config(text, "m.toml")
-    assert cfg.data_derived() == {"[hysteresis] polynomial_scale": "hysteresis.scale", "[creep] gain": "creep.gain"}
+    assert cfg.data_derived() == ["[hysteresis] polynomial_scale", "[creep] gain"]
     # series after the hysteresis, the creep acts on the output itself: its gain is 1 by convention, not derived
     series = parse_config(text.replace('"logarithmic"', '"logarithmic"\nstructure = "series"'), "m.toml")
-    assert list(series.data_derived()) == ["[hysteresis] polynomial_scale"]
+    assert series.data_derived() == ["[hysteresis] polynomial_scale"]
+    # a Preisach grid's range: derived from the data's voltage when not given, recovered from the built grid
+    for levels, rng in ((6, [-110.0, 95.0]), (1, [-3.0, 5.0])):
+        pre = parse_config(f'[hysteresis]\nkind = "preisach"\nlevels = {levels}\n', "m.toml")
+        assert pre.data_derived() == ["[hysteresis] range"] and "[hysteresis] range" in pre.missing_values()
+        grid = pj.Preisach.uniform(*rng, levels)
+        back = pre.derived_values(pj.Actuator(grid))["[hysteresis] range"]
+        again = pj.Preisach.uniform(*back, levels)
+        np.testing.assert_allclose([again.alpha, again.beta], [grid.alpha, grid.beta], rtol=0, atol=1e-12)
+        if levels > 1:
+            np.testing.assert_allclose(back, rng, rtol=1e-12)
     given = ('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 1\nweights = [1e-8]\nthresholds = [5.0]\n'
              'w0 = 5e-8\npolynomial = 2\ncoefficients = [0.1]\n[creep]\nkind = "logarithmic"\ngamma = 0.01\n'
              't0 = 0.01\n')

@@ -84,6 +84,30 @@ def test_redundant_pair_is_undetermined_and_the_rest_match_least_squares(tmp_pat
     assert at_zero.std_errors[2] == pytest.approx(se_ref[1], rel=1e-6)
 
 
+def test_a_record_scored_from_a_time_fits_only_those_samples():
+    import pickle
+
+    rng = np.random.default_rng(3)
+    y = 1.5 * V - 0.7 * W + 0.05 * rng.standard_normal(N)
+    y[:150] += 3.0  # samples before the scored part that the fit must ignore
+    exp = fitting.Experiment.from_arrays(t=T, v_in=V, force=W, displacement=y, name="r")
+    scored = fitting.Experiment(exp.t, exp.v_in, dict(exp.channels), "r", scored_from=float(T[150]))
+    assert scored.first_scored == 150 and "scored from" in repr(scored)
+    assert pickle.loads(pickle.dumps(scored)).scored_from == scored.scored_from
+    assert scored.slice(T[100], None).first_scored == 50  # kept where it lies after the slice's start
+    assert scored.slice(T[200], None).scored_from is None
+    for bad, match in ((float("nan"), "finite time"), (T[-1], "leaves 1 scored sample"), ("1", "finite time")):
+        with pytest.raises(pj.PiezojaxValueError, match=match):
+            fitting.Experiment(exp.t, exp.v_in, dict(exp.channels), "r", scored_from=bad)
+    result = fitting.fit(_model(), fitting.Dataset([scored]), predictor=_predictor(), free=["a", "c"],
+                         weights={"displacement": 1.0}, max_steps=50)
+    X = np.column_stack([V, W])[150:]
+    coef, res, *_ = np.linalg.lstsq(X, y[150:], rcond=None)
+    np.testing.assert_allclose(result.values, coef - [0.2, 0.0], rtol=1e-8)  # a + b with b = 0.2 fixed
+    np.testing.assert_allclose(result.covariance, float(res[0]) / (N - 150 - 2) * np.linalg.inv(X.T @ X), rtol=1e-6)
+    assert result.num_residuals == N - 150 and result.metrics["r"]["displacement"]["samples"] == N - 150
+
+
 def test_minimum_at_a_kink_is_converged_and_a_descent_point_is_not():
     # y does not reach the |k| branch: the cost is smallest at the kink k = 0, where the residual is not zero
     y = 1.3 * V - 0.7 * W - 0.2 * (V + 2.0)

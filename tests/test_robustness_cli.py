@@ -543,18 +543,22 @@ def test_overwrite_replaces_only_its_own_output(bench, tmp_path, capsys):
     capsys.readouterr()
 
 
-def test_window_after_the_records_start_warns_that_the_model_starts_from_rest(bench, tmp_path, capsys):
+def test_window_runs_the_samples_before_its_start_as_history(bench, tmp_path, capsys):
     d = bench
     half = N * DT / 2
     argv = ["fit", str(d / "pi.toml"), str(d / "ok.csv"), "--max-steps", "2", "--quiet", "--no-figures"]
     assert main([*argv, "--window", f"{half}:", "--out", str(tmp_path / "late")]) in (0, 1)
-    err = capsys.readouterr().err
-    assert f"warning: --window {half}:" in err and "starts from rest at the window's start" in err
-    warnings = json.loads((tmp_path / "late" / "result.json").read_text())["warnings"]
-    assert any("not run as history" in w for w in warnings)
-    # a window from the record's start does not warn
-    assert main([*argv, "--window", f":{half}", "--out", str(tmp_path / "early")]) in (0, 1)
-    assert "--window" not in capsys.readouterr().err
+    summary = json.loads((tmp_path / "late" / "result.json").read_text())
+    # scored from the window's start, the whole record simulated: the metrics count only the scored samples
+    assert summary["num_residuals"] == N // 2
+    assert summary["metrics"]["ok"]["displacement"]["samples"] == N // 2
+    like = fitting.load_config(tmp_path / "late" / "config.toml").build(None)
+    model = pj.unwrap(fitting.load_model(tmp_path / "late", like=like))
+    pred = fitting.predict(model, fitting.load_experiment(d / "ok.csv"))
+    x = fitting.load_experiment(d / "ok.csv")["displacement"]
+    rmse = np.sqrt(np.mean((pred["displacement"][N // 2:] - x[N // 2:]) ** 2))
+    assert summary["metrics"]["ok"]["displacement"]["rmse"] == pytest.approx(rmse, rel=1e-6)
+    capsys.readouterr()
 
 
 def test_fitresult_save_overwrites_only_a_fit_folder(bench, tmp_path):
