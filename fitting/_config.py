@@ -258,11 +258,16 @@ class ModelConfig:
         return out + [k for k in self.data_derived() if k not in out]
 
     def data_derived(self) -> list[str]:
-        """The values the file does not give that a fit takes from its data and keeps fixed (the output
-        polynomial's `polynomial_scale`, a parallel logarithmic creep's `gain`, a Preisach grid's `range`), as
-        `"[table] key"`: a fit reports them (`derived_values`; `result.json` → `cli.data_derived`), and a forward
-        simulation needs them given."""
+        """The values the file does not give that a fit takes from its data (the output polynomial's
+        `polynomial_scale`, a parallel logarithmic creep's `gain`, a Preisach grid's `range`, fixed; the dynamics'
+        `gain` without hysteresis, fitted from there), as `"[table] key"`: a fit reports them (`derived_values`;
+        `result.json` → `cli.data_derived`), and a forward simulation needs them given."""
         return list(self._derived())
+
+    def derived_path(self, label: str) -> str:
+        """The model path of the parameter behind a `data_derived` entry (`"[creep] gain"` → `"creep.gain"`)."""
+        table, key = self._derived()[label]
+        return "hysteresis.scale" if table is None else f"{self._block_path(table)}.{key}"
 
     def derived_values(self, model) -> dict:
         """The values of `data_derived` in `model` (unwrapped), by their CONFIG names, as CONFIG would give them."""

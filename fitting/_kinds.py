@@ -1201,6 +1201,10 @@ class TransferFunctionKind(BlockKind):
     def required(self, o):
         return tuple(p for p in self.parameters(o) if p != "gain")
 
+    def data_derived(self, o, config):
+        # without hysteresis the DC gain is the scale from volts to the output, started from the data's (and fitted)
+        return ("gain",) if config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics else ()
+
     def _zeros(self, o, omega, zeta, poles) -> dict:
         m2, m1 = o["zero_pairs"], o["real_zeros"]
         # real zeros at 1.25 times the real poles, then spread (distinct, so that they can part) above the pairs

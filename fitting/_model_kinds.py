@@ -292,13 +292,20 @@ class ActuatorModel(_WithState):
             if coup is not None:
                 q = q - coup * d
             cols = ([] if cap is not None else [np.asarray(e.v_in)]) + ([] if coup is not None else [d])
-            rows.append(np.column_stack(cols))
+            # and a constant per record: the displacement sensor's offset (T b), the charge at the record's start
+            rows.append(np.column_stack(cols + [np.ones_like(q)]))
             rhs.append(q)
         if not rows:
             raise PiezojaxValueError(
                 f"{config.source}: [charge]: give 'capacitance' and 'coupling' explicitly, or fit on data "
                 "files with a 'charge' or 'current' column")
-        coef = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
+        k = rows[0].shape[1] - 1
+        design = np.zeros((sum(r.shape[0] for r in rows), k + len(rows)))
+        at = 0
+        for j, r in enumerate(rows):
+            design[at: at + r.shape[0], :k], design[at: at + r.shape[0], k + j] = r[:, :k], 1.0
+            at += r.shape[0]
+        coef = np.linalg.lstsq(design, np.concatenate(rhs), rcond=None)[0]
         i = 0
         if cap is None:
             cap, i = max(float(coef[0]), 0.0), 1

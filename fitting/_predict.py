@@ -126,7 +126,8 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
             check_finite: bool = True) -> dict[str, np.ndarray]:
     r"""The predicted channels of `model` for one experiment, from rest or after the records of `history`.
 
-    A model starts from rest (demagnetised hysteresis, relaxed creep and dynamics). A record that continues an earlier
+    A model starts from rest (demagnetised hysteresis, creep and dynamics settled at its output at 0 V; see
+    `pj.Actuator`). A record that continues an earlier
     one (the held-out end of a long record, a test run right after the training runs) is predicted with that earlier
     record as `history`: the records of `history` drive the model first, in order, and then `experiment` continues
     from the state they leave; only `experiment`'s samples are returned. This is the same as predicting the joined

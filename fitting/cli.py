@@ -797,9 +797,11 @@ def _cmd_fit(args) -> int:
         extra["cli"]["hints"] = hints
         derived = config.derived_values(result.model)
         extra["cli"]["data_derived"] = derived
-        lines = [f"  {k} = {v!r}" for k, v in derived.items()]
+        fitted = set(result.parameter_names)
+        lines = [f"  {k} = {v!r}" + ("  (fitted)" if config.derived_path(k) in fitted else "  (fixed)")
+                 for k, v in derived.items()]
         if lines:
-            lines.insert(0, "fixed scales taken from the data (not fitted; give them in CONFIG to simulate):")
+            lines.insert(0, "values CONFIG does not give, taken from the data (give them in CONFIG to simulate):")
         report = "\n".join([result.report(), *lines, *hints])
         _info(f"writing {out}", quiet)
         result.write_files(tmp, figures=not args.no_figures, extra=extra)

@@ -67,7 +67,8 @@ class Actuator(eqx.Module):
     at rest, its input $V$ is 0) and the dynamics (settled at its input $u_r$) start in equilibrium, so the model
     reads $\delta = b + G(0)\,u_r + G[u - u_r]$ with $b$ = `offset`, the displacement sensor's zero (it does not
     enter the charge). With neither a prehistory nor a state, $h_r$ is the demagnetised operator's output at
-    $V = 0$: 0 for the operators that `rests_at_zero` (play, stop, PI, Maxwell slip, Bouc–Wen), where $u_r = 0$ and
+    $V = 0$: 0 for the operators that `rests_at_zero` (play, stop, PI, Gaussian Preisach, Maxwell slip, Bouc–Wen, and
+    the output polynomial or scaled operator of one), where $u_r = 0$ and
     the model starts from rest, not necessarily for others (a Preisach operator's $c + \sum_i \mu_i R_i$), where
     the creep and the dynamics start settled at it as after a prehistory.
 

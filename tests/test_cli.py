@@ -490,7 +490,8 @@ def test_charge_start_from_a_measured_current():
     t = np.arange(800) * DT
     v = 50 * np.sin(2 * np.pi * 2 * t) * np.minimum(1.0, t / 0.1)
     out = truth(jnp.asarray(v), DT)
-    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(out.displacement),
+    # the displacement sensor's zero (5 um, the model's offset) enters the displacement, not the charge
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(out.displacement) + 5e-6,
                                                          current=np.asarray(out.current))])
     start = pj.unwrap(parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\n[charge]\n', "m.toml")
                       .build(ds))
@@ -533,6 +534,10 @@ def test_scales_taken_from_the_data_are_reported_and_needed_to_simulate(tmp_path
     # series after the hysteresis, the creep acts on the output itself: its gain is 1 by convention, not derived
     series = parse_config(text.replace('"logarithmic"', '"logarithmic"\nstructure = "series"'), "m.toml")
     assert series.data_derived() == ["[hysteresis] polynomial_scale"]
+    # without hysteresis the dynamics' gain is the scale from volts to metres, started from the data (and fitted)
+    alone = parse_config('[dynamics]\norder = 2\nomega = [900.0]\nzeta = [0.1]\n', "m.toml")
+    assert alone.data_derived() == ["[dynamics] gain"] and alone.missing_values() == ["[dynamics] gain"]
+    assert alone.derived_path("[dynamics] gain") == "dynamics.gain" and "dynamics.gain" in alone.default_free()
     # a Preisach grid's range: derived from the data's voltage when not given, recovered from the built grid
     for levels, rng in ((6, [-110.0, 95.0]), (1, [-3.0, 5.0])):
         pre = parse_config(f'[hysteresis]\nkind = "preisach"\nlevels = {levels}\n', "m.toml")

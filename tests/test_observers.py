@@ -113,6 +113,30 @@ def test_001_recovers_force_and_displacement_exactly(setup001):
     np.testing.assert_allclose(err, BETA1 * F1 / ALPHA1, rtol=0, atol=1e-9 * np.abs(delta_true).max())
 
 
+def test_001_preisach_charge_read_from_its_value_at_rest():
+    # a Preisach charge operator whose demagnetised output at 0 V is not 0: the integrator, reset at rest, reads the
+    # change from it, in the circuit and the observer alike, so a constant in the operator changes nothing
+    def parts(offset):
+        pre = pj.Preisach.uniform(-25.0, 25.0, 3, mu=1e-9 * jnp.array([0.9, 0.1, 0.3, 0.2, 0.5, 0.05]), offset=offset)
+        circuit = pj.ChargeIntegratorCircuit(C_INT, C_REF, R_FP, I_B, BETA1, hysteresis=pre)
+        obs = pj.ForceDisplacementObserver(C_INT, C_REF, R_FP, I_B, BETA1, ALPHA1, K_Z, hysteresis=pre)
+        return circuit, obs
+
+    circuit, obs = parts(0.7e-9)
+    assert not circuit.hysteresis.rests_at_zero
+    v_out = np.asarray(jit(circuit)(V1, DT1, F1))
+    est = jit(obs)(V1, v_out, DT1)
+    np.testing.assert_allclose(np.asarray(est.force), F1, rtol=0, atol=1e-9 * F1.max())
+    plain_circuit, plain_obs = parts(0.0)
+    np.testing.assert_allclose(v_out, np.asarray(plain_circuit(V1, DT1, F1)), rtol=0, atol=1e-12 * np.ptp(v_out))
+    np.testing.assert_allclose(np.asarray(est.force), np.asarray(plain_obs(V1, v_out, DT1).force), rtol=0,
+                               atol=1e-9 * F1.max())
+    # at V = 0 and no force the integrator reads only the bias current, as without any piezo charge
+    bias_only = pj.ChargeIntegratorCircuit(C_INT, C_REF, R_FP, I_B, BETA1, capacitance_p=0.0)
+    assert V1[0] == 0.0 and F1[0] == 0.0
+    assert v_out[0] == pytest.approx(float(bias_only(V1, DT1, F1)[0]), rel=1e-9)
+
+
 def test_001_butterworth_force_term(setup001):
     circuit, obs, v_out, q_v = setup001
     num, den = scipy.signal.butter(3, 2 * np.pi * 20.0, analog=True)

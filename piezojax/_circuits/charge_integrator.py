@@ -1,5 +1,6 @@
 """Paper 001 (Ivan et al. 2009): the piezo charge read by an integrator with a reference capacitor."""
 
+import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_component
@@ -25,7 +26,8 @@ class ChargeIntegratorCircuit(AbstractCircuit):
     $Q_P = \beta F_{ext} + \mathcal{H}[V_{in}] + \mathcal{F}_C[V_{in}]$, where $\mathcal{H}$ is the hysteretic
     charge–voltage operator (its linear part is the capacitance $C_P V_{in}$; a Prandtl–Ishlinskii operator in the
     paper) and $\mathcal{F}_C$ the creep charge (a transfer function, eq. 9). With `hysteresis=None` the charge is
-    the linear $C_P V_{in}$ of eq. 1 (`capacitance_p`).
+    the linear $C_P V_{in}$ of eq. 1 (`capacitance_p`). The integrator is reset at rest: it collects the change
+    of $Q_P$ from the demagnetised operator's charge at $V_{in} = 0$ (0 for an operator that `rests_at_zero`).
 
     Integrator output. Solving eq. (3) for $V_{out}$ with $F_{est} = F_{ext}$ gives our reading of the circuit: the
     integrator capacitor $C$ collects the piezo charge, the charge $-C_R V_{in}$ of the reference capacitor driven in
@@ -92,7 +94,13 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         return error_if_not_finite(m, ("bias_current",))
 
     def _voltage_charge(self, v_in: Array, dt: Array) -> Array:
-        q = self.capacitance_p * v_in if self.hysteresis is None else self.hysteresis(v_in)
+        if self.hysteresis is None:
+            q = self.capacitance_p * v_in
+        elif self.hysteresis.rests_at_zero:
+            q = self.hysteresis(v_in)
+        else:  # reset at rest, the integrator collects the change from the demagnetised operator's charge at 0 V
+            h = self.hysteresis(jnp.concatenate([jnp.zeros((1,), v_in.dtype), v_in]))
+            q = h[1:] - h[0]
         if self.creep is not None:
             q = q + self.creep(v_in, dt)
         return q

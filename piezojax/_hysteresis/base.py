@@ -1,6 +1,7 @@
 """The hysteresis cell interface shared by every rate-independent operator."""
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -42,13 +43,20 @@ class AbstractHysteresis(AbstractCell):
     def init(self) -> PyTree[Array]:
         """The relaxed (demagnetised) initial state, with the input at 0."""
 
+    zero_at_rest: ClassVar[bool | None] = False
+    """Declare `True` when the output in the initial state `init()` at input 0 is 0 for every parameter value (the
+    play and stop operators, PI, the Gaussian Preisach, Maxwell slip, Bouc–Wen); `None` (the output maps): as the
+    wrapped operator. See `rests_at_zero`."""
+
     @property
     def rests_at_zero(self) -> bool:
-        """Whether the output in the initial state `init()` at input 0 is 0 for every parameter value (the play
-        and stop operators, PI, Maxwell slip, Bouc–Wen). `pj.Actuator` then starts from rest without running the
-        operator; otherwise (default, e.g. a Preisach operator, whose demagnetised output $c + \\sum_i \\mu_i
-        R_i$ need not vanish) it settles the creep and the dynamics at that output before the record."""
-        return False
+        """Whether the output in the initial state at input 0 is 0 (`zero_at_rest`). `pj.Actuator` then starts
+        from rest without running the operator; otherwise (default, e.g. a Preisach operator, whose demagnetised
+        output $c + \\sum_i \\mu_i R_i$ need not vanish) it settles the creep and the dynamics at that output
+        before the record."""
+        if self.zero_at_rest is None:
+            return self.hysteresis.rests_at_zero
+        return bool(self.zero_at_rest)
 
     @abc.abstractmethod
     def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
@@ -163,6 +171,8 @@ class AbstractOutputMap(AbstractHysteresis):
     """
 
     hysteresis: eqx.AbstractVar[AbstractHysteresis]
+    # the wrapped operator's `rests_at_zero`: `shape` must send 0 to 0 (else declare `zero_at_rest = False`)
+    zero_at_rest: ClassVar[bool | None] = None
 
     @abc.abstractmethod
     def shape(self, h: Array) -> Array:
@@ -175,11 +185,6 @@ class AbstractOutputMap(AbstractHysteresis):
 
     def init(self) -> PyTree[Array]:
         return self.hysteresis.init()
-
-    @property
-    def rests_at_zero(self) -> bool:
-        """The wrapped operator's: every wrapper's static map sends 0 to 0."""
-        return self.hysteresis.rests_at_zero
 
     def step(self, state: PyTree[Array], v: Array) -> tuple[PyTree[Array], Array]:
         state, h = self.hysteresis.step(state, v)

@@ -1,6 +1,6 @@
 """The Bouc–Wen hysteresis operator in its rate-independent increment form."""
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 import equinox as eqx
 import jax
@@ -283,9 +283,7 @@ class BoucWen(AbstractHysteresis):
         params = check_value(tuple(getattr(self, name) for name in _PARAMS), ok, messages)
         return eqx.tree_at(lambda m: tuple(getattr(m, name) for name in _PARAMS), self, params)
 
-    @property
-    def rests_at_zero(self) -> bool:
-        return True
+    zero_at_rest: ClassVar[bool | None] = True
 
     def init(self, v0: ScalarLike = 0.0, z0: ScalarLike = 0.0) -> Float[Array, "2"]:
         """The state `[v_prev, z]`; by default relaxed ($z = 0$) with the input at 0.

@@ -1,5 +1,7 @@
 r"""The Maxwell-slip operator: elasto-slide elements in parallel (paper 003 §3.3.1, after Goldfarb & Celanovic)."""
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -122,9 +124,7 @@ class MaxwellSlip(AbstractHysteresis):
             lambda m: (m.stiffness, m.breakaway, m.smoothing), self, (k, f, error_if_bad_smoothing(self.smoothing))
         )
 
-    @property
-    def rests_at_zero(self) -> bool:
-        return True
+    zero_at_rest: ClassVar[bool | None] = True
 
     def init(self) -> tuple[Array, Array]:
         """Relaxed state `(previous input, spring elongations) = (0, 0)`."""

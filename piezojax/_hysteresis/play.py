@@ -19,6 +19,7 @@ operator and equals it at $s = 0$ (and for $r = 0$ at any $s$).
 
 import abc
 import functools
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -519,6 +520,10 @@ class _AbstractStopCell(AbstractHysteresis):
     thresholds: eqx.AbstractVar[Float[Array, "*n"]]
     smoothing: eqx.AbstractVar[Float[Array, ""]]
 
+    # every stop cell's output is 0 at v = 0 with its stops at 0 (play, stop, PI, Gaussian Preisach: w0 v +
+    # sum w_j phi(v - z_j) with phi(0) = 0)
+    zero_at_rest: ClassVar[bool | None] = True
+
     def init(self) -> tuple[Array, Array]:
         """Demagnetised state `(previous input, stop values) = (0, 0)`."""
         dtype = self.thresholds.dtype
@@ -544,10 +549,6 @@ class _AbstractStopCell(AbstractHysteresis):
 class _AbstractPlainStopCell(_AbstractStopCell):
     """The play and stop operators: the checks of `thresholds` and `smoothing`, the loop of `stop_scan` and the
     root-finding inverse (final here)."""
-
-    @property
-    def rests_at_zero(self) -> bool:
-        return True
 
     def check(self):
         return eqx.tree_at(

@@ -181,10 +181,6 @@ class PrandtlIshlinskii(_AbstractStopCell):
         self.w0 = check_scalar(w0, "w0", dtype)
         self.smoothing = check_smoothing(smoothing, dtype)
 
-    @property
-    def rests_at_zero(self) -> bool:
-        return True
-
     def check(self) -> "PrandtlIshlinskii":
         # outside the scan: one check per parameter array, also for leaves replaced after __init__ (`eqx.tree_at`)
         check_same_shape(self.weights, "weights", self.thresholds, "thresholds")

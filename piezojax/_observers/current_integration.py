@@ -150,8 +150,11 @@ class ForceDisplacementObserver(AbstractObserver):
         q = m._compensated_charge(v, s["v_out"], dt)
         if m.hysteresis is None:
             q_v = m.capacitance_p * v
-        elif m.prehistory is None:
+        elif m.prehistory is None and m.hysteresis.rests_at_zero:
             q_v = m.hysteresis(v)
+        elif m.prehistory is None:  # the integrator reads the change from the demagnetised output at 0 V
+            h = m.hysteresis(jnp.concatenate([jnp.zeros((1,), v.dtype), v]))
+            q_v = h[1:] - h[0]
         else:  # the excursion 0 -> u_p -> 0 first; the integrator reads the change from its end
             path = jnp.stack([m.prehistory.astype(v.dtype), jnp.zeros((), v.dtype)])
             h = m.hysteresis(jnp.concatenate([path, v]))
