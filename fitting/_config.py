@@ -312,8 +312,9 @@ class ModelConfig:
                 derived = [k for k in missing if k in self.data_derived()]
                 raise PiezojaxValueError(
                     f"{self.source}: forward simulation needs every parameter value; missing: {', '.join(missing)}"
-                    + (f" ({', '.join(derived)}: a scale a fit takes from its data; `piezojax fit` reports its value "
-                       "in report.txt and in result.json under cli.data_derived)" if derived else "")
+                    + (f" ({', '.join(derived)}: what a fit takes from its data when the file omits it; `piezojax "
+                       "fit` reports the value at the end of report.txt and in result.json under cli.data_derived)"
+                       if derived else "")
                 )
         if dataset is None:
             return self._constrain(self._assemble(None))

@@ -795,7 +795,11 @@ def _cmd_fit(args) -> int:
             extra["cli"]["reseeded"] = reseeded
         hints = _lack_of_fit_hints(config, result)
         extra["cli"]["hints"] = hints
-        derived = config.derived_values(result.model)
+        try:
+            derived = config.derived_values(result.model)
+        except (AttributeError, TypeError, ValueError) as e:  # a report's detail must not lose the finished fit
+            derived = {}
+            extra["warnings"].append(f"the values taken from the data could not be read from the model ({e})")
         extra["cli"]["data_derived"] = derived
         fitted = set(result.parameter_names)
         lines = [f"  {k} = {v!r}" + ("  (fitted)" if config.derived_path(k) in fitted else "  (fixed)")
