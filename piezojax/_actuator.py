@@ -268,10 +268,11 @@ class Actuator(eqx.Module):
     def _initial(self, dtype):
         zero = jnp.zeros((), dtype)
         if self.hysteresis is None or (self.prehistory is None and self.hysteresis_state is None
-                                       and self.hysteresis.rests_at_zero):
+                                       and getattr(self.hysteresis, "rests_at_zero", True)):
             return None, zero
         # settled at the operator's output at V = 0: after a prehistory, from a given state, or demagnetised for
-        # an operator whose output is not 0 there (`rests_at_zero`, e.g. a Preisach operator)
+        # an operator whose output is not 0 there (`rests_at_zero`, e.g. a Preisach operator; a component set past
+        # the type check with `eqx.tree_at` that has no such attribute starts from rest, as any did before)
         path = jnp.zeros((1,), dtype)
         if self.prehistory is not None:
             path = jnp.stack([self.prehistory.astype(dtype), zero])

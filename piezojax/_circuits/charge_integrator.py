@@ -96,7 +96,7 @@ class ChargeIntegratorCircuit(AbstractCircuit):
     def _voltage_charge(self, v_in: Array, dt: Array) -> Array:
         if self.hysteresis is None:
             q = self.capacitance_p * v_in
-        elif self.hysteresis.rests_at_zero:
+        elif getattr(self.hysteresis, "rests_at_zero", True):  # any `op(v)` callable: as given
             q = self.hysteresis(v_in)
         else:  # reset at rest, the integrator collects the change from the demagnetised operator's charge at 0 V
             h = self.hysteresis(jnp.concatenate([jnp.zeros((1,), v_in.dtype), v_in]))

@@ -150,7 +150,7 @@ class ForceDisplacementObserver(AbstractObserver):
         q = m._compensated_charge(v, s["v_out"], dt)
         if m.hysteresis is None:
             q_v = m.capacitance_p * v
-        elif m.prehistory is None and m.hysteresis.rests_at_zero:
+        elif m.prehistory is None and getattr(m.hysteresis, "rests_at_zero", True):  # any `op(v)` callable
             q_v = m.hysteresis(v)
         elif m.prehistory is None:  # the integrator reads the change from the demagnetised output at 0 V
             h = m.hysteresis(jnp.concatenate([jnp.zeros((1,), v.dtype), v]))
