@@ -371,6 +371,12 @@ class CurrentIntegrationObserver(_WithState, _Observer):
                               nonzero=k == "displacement_coefficient")
         return {k: v for k, v in out.items() if v is not None} | {"state": parse_state(raw, source)}
 
+    def missing(self, config):
+        # without hysteresis C_P is the charge's scale, started from the data (the placeholder 1 nF is no value)
+        given = config.model_options.get("capacitance_p") is not None
+        return ([] if given or not config.hysteresis_kind.empty else ["[observer] capacitance_p"]) + (
+            super().missing(config))
+
     def records(self, config, dataset):
         o = config.model_options
         plain = pj.ForceDisplacementObserver(

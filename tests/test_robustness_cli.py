@@ -101,6 +101,7 @@ def bench(tmp_path_factory):
         "pi.toml": PI,
         "known.toml": KNOWN,
         "observer.toml": OBSERVER,
+        "observer_cp.toml": OBSERVER + "capacitance_p = 1.7e-9\n",
         "badtoml.toml": "[hysteresis\nkind = 1\n",
         "table.toml": PI + "[motor]\norder = 2\n",
         "key.toml": '[creep]\nkind = "kelvin_voigt"\ntau = [1.0]\n',
@@ -386,7 +387,10 @@ CASES = {
     "simulate onto a folder": (_simulate("known.toml", "ok.csv", out="adir.csv", opts=("--overwrite",)), 2,
                                ["adir.csv", "is a directory"]),
     "simulate without values": (_simulate("pi.toml", "ok.csv"), 2, ["pi.toml", "missing: [hysteresis] weights"]),
-    "simulate observer without v_out": (_simulate("observer.toml", "ok.csv"), 2, ["'v_out'", "input"]),
+    "simulate observer without v_out": (_simulate("observer_cp.toml", "ok.csv"), 2, ["'v_out'", "input"]),
+    # without hysteresis the charge's scale C_P is the data's: a simulation needs it given
+    "simulate observer without capacitance_p": (_simulate("observer.toml", "ok.csv"), 2,
+                                                ["missing: [observer] capacitance_p"]),
     "simulate bad input file": (_simulate("known.toml", "gap.csv"), 2, ["gap.csv", "not uniformly sampled"]),
 }
 
