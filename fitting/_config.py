@@ -309,7 +309,7 @@ class ModelConfig:
         if require_values:
             missing = self.missing_values()
             if missing:
-                derived = [k for k in missing if k in self.data_derived()]
+                derived = [k for k in missing if k in self._derived()]
                 raise PiezojaxValueError(
                     f"{self.source}: forward simulation needs every parameter value; missing: {', '.join(missing)}"
                     + (f" ({', '.join(derived)}: what a fit takes from its data when the file omits it; `piezojax "

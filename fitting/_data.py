@@ -298,17 +298,19 @@ class Experiment:
         if np.max(np.abs(d - dt)) > 1e-9 * dt:  # rounded stamps: the grid they stand for
             t = t[0] + dt * np.arange(n, dtype=np.float64)
             t[-1] = cols["t"][-1]
+        object.__setattr__(self, "t", _readonly(t))
         if self.scored_from is not None:
             s = self.scored_from
             if isinstance(s, bool) or not isinstance(s, (int, float, np.integer, np.floating)) or not np.isfinite(s):
                 raise PiezojaxValueError(f"{label}: `scored_from` must be a finite time in seconds or None, got {s!r}")
-            first = int(np.searchsorted(t, float(s) - _SLICE_RTOL * dt, side="left"))
+            object.__setattr__(self, "scored_from", float(s))
+            first = self.first_scored
             if n - first < 2:
                 raise PiezojaxValueError(f"{label}: `scored_from` = {float(s):.6g} s leaves {max(n - first, 0)} "
                                          f"scored sample(s) of the record [{t[0]:.6g}, {t[-1]:.6g}] s; at least 2 are "
                                          "needed")
-            object.__setattr__(self, "scored_from", None if first == 0 else float(s))
-        object.__setattr__(self, "t", _readonly(t))
+            if first == 0:
+                object.__setattr__(self, "scored_from", None)
         object.__setattr__(self, "v_in", _readonly(cols["v_in"]))
         chans = {k: _readonly(cols[k]) for k in CHANNELS if k in cols}
         object.__setattr__(self, "channels", types.MappingProxyType(chans))

@@ -1,12 +1,11 @@
 """Paper 001 (Ivan et al. 2009): the piezo charge read by an integrator with a reference capacitor."""
 
-import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import check_component
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
-from .._hysteresis.base import AbstractHysteresis
+from .._hysteresis.base import AbstractHysteresis, change_from_rest
 from .._linear.base import AbstractLinearSystem
 from .base import (
     AbstractCircuit,
@@ -94,13 +93,8 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         return error_if_not_finite(m, ("bias_current",))
 
     def _voltage_charge(self, v_in: Array, dt: Array) -> Array:
-        if self.hysteresis is None:
-            q = self.capacitance_p * v_in
-        elif getattr(self.hysteresis, "rests_at_zero", True):  # any `op(v)` callable: as given
-            q = self.hysteresis(v_in)
-        else:  # reset at rest, the integrator collects the change from the demagnetised operator's charge at 0 V
-            h = self.hysteresis(jnp.concatenate([jnp.zeros((1,), v_in.dtype), v_in]))
-            q = h[1:] - h[0]
+        # reset at rest, the integrator collects the change from the demagnetised operator's charge at 0 V
+        q = self.capacitance_p * v_in if self.hysteresis is None else change_from_rest(self.hysteresis, v_in)
         if self.creep is not None:
             q = q + self.creep(v_in, dt)
         return q

@@ -127,6 +127,18 @@ class AbstractHysteresis(AbstractCell):
         return 1
 
 
+def change_from_rest(op, v: Array, path: Array | None = None) -> Array:
+    """`op(v)` less the operator's output at rest before it, for an integrator reset at rest: after `path` (e.g. a
+    prehistory excursion ending at 0 V) when given, else demagnetised at 0 V, where an operator that `rests_at_zero`
+    (or an `op(v)` callable without the attribute, read as given) outputs 0."""
+    if path is None:
+        if getattr(op, "rests_at_zero", True):
+            return op(v)
+        path = jnp.zeros((1,), v.dtype)
+    h = op(jnp.concatenate([path.astype(v.dtype), v]))
+    return h[path.shape[0]:] - h[path.shape[0] - 1]
+
+
 def scan_cell(op: AbstractHysteresis, state: PyTree[Array], signal: Signal) -> tuple[PyTree[Array], Signal]:
     """The plain `_run`: `jax.lax.scan` of `op.step` over a prepared signal, from `state`."""
     # A plain closure, not the bound method: jax hashes the scan body, and a bound method of a Module hashes

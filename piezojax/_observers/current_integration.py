@@ -17,7 +17,7 @@ from .._circuits.base import (
 )
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
-from .._hysteresis.base import AbstractHysteresis
+from .._hysteresis.base import AbstractHysteresis, change_from_rest
 from .._linear.base import AbstractLinearSystem
 from .._linear.butterworth import butterworth_zoh
 from .base import AbstractObserver, Estimate
@@ -150,15 +150,9 @@ class ForceDisplacementObserver(AbstractObserver):
         q = m._compensated_charge(v, s["v_out"], dt)
         if m.hysteresis is None:
             q_v = m.capacitance_p * v
-        elif m.prehistory is None and getattr(m.hysteresis, "rests_at_zero", True):  # any `op(v)` callable
-            q_v = m.hysteresis(v)
-        elif m.prehistory is None:  # the integrator reads the change from the demagnetised output at 0 V
-            h = m.hysteresis(jnp.concatenate([jnp.zeros((1,), v.dtype), v]))
-            q_v = h[1:] - h[0]
-        else:  # the excursion 0 -> u_p -> 0 first; the integrator reads the change from its end
-            path = jnp.stack([m.prehistory.astype(v.dtype), jnp.zeros((), v.dtype)])
-            h = m.hysteresis(jnp.concatenate([path, v]))
-            q_v = h[2:] - h[1]
+        else:  # the integrator reads the change from rest: after the excursion 0 -> u_p -> 0, or demagnetised
+            path = None if m.prehistory is None else jnp.stack([m.prehistory.astype(v.dtype), jnp.zeros((), v.dtype)])
+            q_v = change_from_rest(m.hysteresis, v, path)
         if m.creep is not None:
             q_v = q_v + m.creep(v, dt)
         force = (q - q_v) / m.force_sensitivity
