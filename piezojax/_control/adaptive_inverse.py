@@ -146,7 +146,10 @@ class AdaptiveInverseController(AbstractController):
         params, delta, ys, rs, x_prev, o_prev, started, targets = state
         W, c, w, b = params
         yn, rn = self._normalise(measurement), self._normalise(reference)
-        # the reference read `preview` samples ago is the one the measurement of this instant is compared with
+        # the reference read `preview` samples ago is the one the measurement of this instant is compared with;
+        # until `preview` references have been read, that is the first one read (the controller never sees the
+        # record's first `preview` references: it reads ahead from its start, so the reference counts as constant
+        # before it; with a reference that starts at rest this changes nothing)
         targets = jnp.where(started > 0, targets, jnp.full_like(targets, rn))
         target = targets[-1] if self.preview else rn
         targets = jnp.concatenate([rn[None], targets[:-1]]) if self.preview else targets

@@ -28,8 +28,9 @@ class MaxwellSlip(AbstractHysteresis):
 
     which is the Prandtl–Ishlinskii operator with $w_0 = \sum_i k_i$, weights $-k_i$ and thresholds $f_i/k_i$.
 
-    Electrical analogue (paper 003 eq. 27–32, the voltage–charge hysteresis of the actuator; the equations are
-    images in our copy of the thesis, so this is the Goldfarb–Celanovic form the text describes): the input is the
+    Electrical analogue (paper 003 eq. 29–32, the voltage–charge hysteresis of the actuator; eq. 27–28 build the
+    elements from the rising curve; the equations are images in our copy of the thesis, so this is the
+    Goldfarb–Celanovic form the text describes): the input is the
     charge $q$, element $i$ is a capacitor $C_i$ with breakaway voltage $v_i$ and "slid" charge $q_{b,i}$, its
     voltage is $V_i = (q - q_{b,i})/C_i$ clamped at $\pm v_i$, and the output is the hysteresis voltage
     $V_H = \sum_i V_i$. So `stiffness` $= 1/C_i$ (in V/C), `breakaway` $= v_i$ (in V), input $q$ (in C) and output
@@ -96,7 +97,7 @@ class MaxwellSlip(AbstractHysteresis):
         return self.breakaway / self.stiffness
 
     def as_prandtl_ishlinskii(self, linear: ScalarLike = 0.0) -> PrandtlIshlinskii:
-        r"""The same operator plus a linear term, $\ell x + F[x]$, as a `PrandtlIshlinskii` (exact form only).
+        r"""The same operator plus a linear term, $\ell x + F[x]$, as a `PrandtlIshlinskii` (with the same `smoothing`).
 
         $F = \sum_i k_i S_{r_i}[x] = (\sum_i k_i)\,x - \sum_i k_i P_{r_i}[x]$ (stop = input − play), so the PI form
         has $w_0 = \ell + \sum_i k_i$, weights $-k_i$ and thresholds $r_i = f_i/k_i$, sorted ascending. It gives
