@@ -570,7 +570,7 @@ def _best(fn, repeats):
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="4 experiments x 2500 samples (for tests)")
     parser.add_argument("--bounds-variant", action="store_true", help="also fit scipy on bounded physical parameters")
     parser.add_argument("--max-steps", type=int, default=None, help="engine steps (default 100, quick 60)")

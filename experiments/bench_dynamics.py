@@ -193,7 +193,7 @@ def _row(name, t, n, t_ref=None, ref=""):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="short signals (smoke test)")
     parser.add_argument(
         "--default-xla-flags",

@@ -221,7 +221,7 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="1,16,256", help="fleet sizes, comma-separated (default 1,16,256)")
     parser.add_argument("--samples", type=int, default=20_000, help="samples per actuator (two records)")
     parser.add_argument("--max-steps", type=int, default=20)

@@ -68,7 +68,7 @@ def best_time(fn, repeats):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="short signals only (for tests)")
     parser.add_argument(
         "--default-xla-flags",

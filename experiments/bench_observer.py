@@ -90,7 +90,7 @@ def _best(fns, repeats):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="a 4000-sample record and 2 repeats")
     args = parser.parse_args(argv)
     pj.enable_fast_cpu_scans()

@@ -91,6 +91,10 @@ import numpy as np
 
 import fitting
 import piezojax as pj
+from experiments._command import output_folder, positive_int, run, stop_if_interrupted, writing
+
+KIND = "experiments.boucwen_benchmark"  # what the output folder's marker records
+OUT = "results/boucwen_benchmark"
 
 DATA = Path(__file__).resolve().parent / "data" / "boucwen_benchmark" / "train.h5"
 PERIOD = 8192
@@ -101,7 +105,7 @@ NOISE_DEFAULT = 7.3e-6  # m, the train data's noise level (RMS of half the perio
 FREE = ("m", "c", "k", "alpha", "gamma", "delta")  # beta fixed (identifiability), nu fixed unless --free-nu
 
 
-class BenchmarkFileError(ValueError):
+class BenchmarkFileError(pj.PiezojaxValueError):
     """A data or test file that does not have the benchmark layout."""
 
 
@@ -259,6 +263,7 @@ def _rms(problem, u) -> float:
 def fit_stage(params, dataset, predictor, free, max_steps, label) -> tuple:
     """One `fitting.fit`; prints and returns the RMS error before and after, steps and verdict."""
     result = fitting.fit(params, dataset, predictor=predictor, free=list(free), max_steps=max_steps, progress=False)
+    stop_if_interrupted(result)
     w = result.weights["displacement"]
     before = float(np.sqrt(2 * result.initial_cost / result.num_residuals)) / w
     after = float(np.sqrt(2 * result.cost / result.num_residuals)) / w
@@ -520,24 +525,26 @@ def format_parameters(start: dict, fitted: dict) -> str:
 
 def main(argv=None):
     """Command-line entry point; returns the report dict."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=str(DATA), help="train.h5 of the benchmark")
     parser.add_argument("--test", default=None, help="test file (HDF5 groups multisine and/or sinesweep)")
-    parser.add_argument("--out", default="results/boucwen_benchmark", help="output folder")
+    parser.add_argument("--out", default=OUT, help=f"output folder (default {OUT}); an earlier output of this "
+                        "experiment is replaced whole, any other folder is refused")
     parser.add_argument("--quick", action="store_true", help="fewer LM steps and 4 RK4 sub-steps (tests)")
     parser.add_argument("--free-nu", action="store_true", help="also fit nu (stage 3)")
     parser.add_argument("--ms-periods", type=int, default=3, help="periods simulated for the multisine test")
     parser.add_argument("--make-test", default=None, metavar="PATH",
                         help="write a synthetic test file (nominal parameters + noise) to PATH and exit")
-    parser.add_argument("--sweep-samples", type=int, default=20000, help="sine sweep length for --make-test")
+    parser.add_argument("--sweep-samples", type=positive_int, default=20000, help="sine sweep length for --make-test")
     parser.add_argument("--noise", type=float, default=NOISE_DEFAULT, help="noise RMS (m) for --make-test")
     args = parser.parse_args(argv)
     if args.ms_periods < 2:
-        raise SystemExit("error: --ms-periods must be at least 2")
+        parser.error(f"--ms-periods must be at least 2, got {args.ms_periods}")
 
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
     pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
+    out = output_folder(args.out, KIND, default=OUT)  # before any long work
     start = time.perf_counter()
 
     if args.make_test is not None:
@@ -546,11 +553,8 @@ def main(argv=None):
               f"noise {args.noise:.2e} m ({out['seconds']:.1f} s)")
         return out
 
-    try:
-        test = load_test(args.test) if args.test is not None else None
-        data = load_train(args.data)
-    except BenchmarkFileError as e:
-        raise SystemExit(f"error: {e}") from None
+    test = load_test(args.test) if args.test is not None else None  # a bad file: one line, exit status 2
+    data = load_train(args.data)
 
     if args.quick:
         settings = {"substeps1": 4, "warm1": 1024, "steps1": 60, "substeps2": 4, "steps2": 8}
@@ -583,8 +587,6 @@ def main(argv=None):
             print(f"  ({key}: {val:.4e} m)")
     elapsed = time.perf_counter() - start
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     report = {
         "data": str(args.data),
         "fit_samples": "periods 1-3 (samples 8192..32767), averaged into one steady period",
@@ -600,13 +602,14 @@ def main(argv=None):
         "test_extra": extra,
         "run_seconds": elapsed,
     }
-    write_json(out / "metrics.json", report)
-    if scores is not None:
-        write_json(out / "test_rmse.json", scores)
-    save_figure(out / "validation.png", data, pred, test, test_preds)
+    with writing(out, KIND) as tmp:
+        write_json(tmp / "metrics.json", report)
+        if scores is not None:
+            write_json(tmp / "test_rmse.json", scores)
+        save_figure(tmp / "validation.png", data, pred, test, test_preds)
     print(f"\nrun time {elapsed:.1f} s; results in {out}")
     return report
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(run(main, "python -m experiments.boucwen_benchmark"))

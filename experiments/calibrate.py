@@ -28,8 +28,9 @@ Calibrations, on the same records:
 
 Printed: a table of held-out force error (band and RMSE in % of the maximum measured force, as the paper reports
 +8 %/−6 %) and displacement error (RMSE and max in % of range) for the paper's figure, the staged and the joint fit.
-Saved to `--out` (default `results/calibrate/`), atomically: `summary.json`, `report.txt` (the joint fit's report),
-figures of the held-out force and displacement, and the joint fit's folder (`joint/`: model, result.json, figures).
+Saved to `--out` (default `results/calibrate/`), atomically, replacing only an earlier output of this experiment:
+`summary.json`, `report.txt` (the joint fit's report), figures of the held-out force and displacement, and the
+joint fit's folder (`joint/`: model, result.json, figures). Ctrl-C stops it with exit status 130, writing nothing.
 
 Run: `python -m experiments.calibrate [--quick] [--out DIR]`.
 """
@@ -41,6 +42,10 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments._command import output_folder, positive_int, run, stop_if_interrupted, writing
+
+KIND = "experiments.calibrate"  # what the output folder's marker records
+OUT = "results/calibrate"
 RATE = 1e3
 
 
@@ -201,10 +206,12 @@ STAGED_CUTOFF = 20.0  # Hz: the hand-chosen cutoff of the Butterworth on F_est/k
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments.calibrate", description=__doc__.split("\n")[0])
-    parser.add_argument("--out", default="results/calibrate", help="output folder (replaced atomically)")
+    parser = argparse.ArgumentParser(prog="python -m experiments.calibrate", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=OUT, help=f"output folder (default {OUT}); an earlier output of this "
+                        "experiment is replaced whole, any other folder is refused")
     parser.add_argument("--quick", action="store_true", help="shorter creep record and fewer LM steps (for tests)")
-    parser.add_argument("--max-steps", type=int, default=None, help="Levenberg–Marquardt steps (default 80, quick 8)")
+    parser.add_argument("--max-steps", type=positive_int, default=None,
+                        help="Levenberg–Marquardt steps (default 80, quick 8)")
     args = parser.parse_args(argv)
 
     import piezojax as pj
@@ -216,9 +223,7 @@ def main(argv=None) -> int:
     pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     import fitting
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)  # e.g. results/ in a fresh clone
-    fitting.files.check_writable(out)  # before any long work
+    out = output_folder(args.out, KIND, default=OUT)  # before any long work
     t_start = time.perf_counter()
 
     _progress("[1/4] simulating the paper 001 bench records ...")
@@ -234,6 +239,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     max_steps = args.max_steps or (8 if args.quick else 80)
     result = fitting.fit(joint_start(staged), train, free=JOINT_FREE, weights="range", max_steps=max_steps)
+    stop_if_interrupted(result)
     t_joint = time.perf_counter() - t0
 
     _progress("[4/4] evaluating on held-out experiments ...")
@@ -249,7 +255,7 @@ def main(argv=None) -> int:
                "staged": strip(ev_staged), "joint": strip(ev_joint), "joint_fit": result.summary(),
                "timing_s": {"records": t_records, "staged": t_staged, "joint": t_joint},
                "quick": bool(args.quick)}
-    with fitting.files.atomic_directory(out, overwrite=True) as tmp:
+    with writing(out, KIND) as tmp:
         fitting.files.save_json(tmp / "summary.json", summary)
         (tmp / "table.txt").write_text(text + "\n" + timing + "\n")
         (tmp / "report.txt").write_text(result.report() + "\n")
@@ -260,4 +266,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run(main, "python -m experiments.calibrate"))

@@ -32,19 +32,20 @@ that cannot hold DC, crosstalk, noise and 16-bit converters. The steps follow th
    offset, the eq. (9) observer of step 3 (paper's way) as the only feedback; triangles of 6 µm peak to peak at 1,
    5, 10 and 20 Hz. Every controller reads the reference one sample ahead (`preview=1`: a command acts from the
    next sample on; without it a feedforward lags by one sample, 4 % of the range at 20 Hz). Controllers: the
-   adaptive inverse controller (eq. 12–19 with two measurement and two reference lags; its output layer started
+   adaptive inverse controller (eq. 12–19 with three reference lags and no measurement lag; its output layer started
    offline from the open-loop record of step 4, then adapted online), a PI-inverse feedforward (a
    Prandtl–Ishlinskii model plus an output offset fitted to the same record) plus a PID, the PID alone, and a
    linear inverse (gain and offset of a straight-line fit) as "before compensation"; the PID gains are tuned by
-   gradient through the closed loop (Levenberg–Marquardt on the tracking error of a 10 Hz triangle,
-   `optimistix`). Scored by eq. (20) on the laser (true) displacement after the first period. Also: the adaptive
-   controller's error period by period over 30 s at 1 Hz (does the learning settle?), and the closed-loop
+   gradient through the closed loop (Levenberg–Marquardt on the tracking error of a 10 Hz triangle, `optimistix`; the
+   gains kept non-negative). Scored by eq. (20) on the laser (true) displacement after the first period. Also: the
+   adaptive controller's error period by period over 30 s at 1 Hz (does the learning settle?), and the closed-loop
    frequency response reference → displacement of three controllers from a 1–400 Hz chirp (Fig. 22).
 
 Prints a table "paper | this project" and writes `report.json` and figures to `--out`.
 """
 
 import argparse
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -58,6 +59,10 @@ import scipy.signal
 
 import fitting
 import piezojax as pj
+from experiments._command import output_folder, run, stop_if_interrupted, writing
+
+KIND = "experiments.chen2014"  # what the output folder's marker records
+OUT = "results/chen2014"
 
 PAPER = {
     "force_sensitivity_V_per_N": 0.015381,
@@ -188,6 +193,7 @@ def stage_identification(bench, key, seconds, force_sensitivity, p_c):
     t0 = time.perf_counter()
     result = fitting.fit(start, fitting.Dataset([exp]), predictor=_stage_predictor(),
                          free=["k_p", "m_e", "c_e", "k_e", "crosstalk"], max_steps=100)
+    stop_if_interrupted(result)
     seconds_fit = time.perf_counter() - t0
     joint = result.model
 
@@ -281,6 +287,7 @@ def narmax(train, val, key, epochs):
     # the simulation error of a recurrent network has local minima: four hidden layers fitted at once (vmap)
     starts = [start] + [network(k) for k in jax.random.split(key, 3)]
     result = fitting.fit(start, fitting.Dataset([exp]), predictor=pred, max_steps=120, starts=starts)
+    stop_if_interrupted(result)
     out["least_squares"] = {"nrmse": score(result.model), "one_step_nrmse": one_step(result.model),
                             "seconds": time.perf_counter() - t0, "steps": int(result.steps), "starts": len(starts)}
     t0 = time.perf_counter()
@@ -363,21 +370,30 @@ def _run(controller, plant, observer, ref, noise):
 
 
 def tune_pid(plant, observer, pid, ref, noise, feedforward=None):
-    """(kp, ki) by Levenberg–Marquardt on the closed loop's tracking error, gradients through the loop; with a
-    `feedforward`, the PID's gains in `pj.FeedforwardFeedback(feedforward, pid)`."""
+    r"""(kp, ki) by Levenberg–Marquardt on the closed loop's tracking error, gradients through the loop; with a
+    `feedforward`, the PID's gains in `pj.FeedforwardFeedback(feedforward, pid)`.
+
+    The gains stay non-negative, $k = s\,\theta^2$ ($s$ = 1e6 V/m for $k_p$, 1e9 V/(m s) for $k_i$; smooth at 0, so
+    a gain can settle there): unconstrained, the tuning behind the feedforward had ended at a negative $k_p$
+    (−2.7e6 V/m), positive feedback on the error. A gain that starts below $10^{-2} s$ starts there (at 0 the square
+    has no slope)."""
     scale = jnp.asarray([1e6, 1e9])
 
+    def gains(theta):
+        return scale * theta**2
+
     def residuals(theta, _):
-        c = eqx.tree_at(lambda p: (p.kp, p.ki), pid, (theta[0] * scale[0], theta[1] * scale[1]))
+        kp, ki = gains(theta)
+        c = eqx.tree_at(lambda p: (p.kp, p.ki), pid, (kp, ki))
         c = c if feedforward is None else pj.FeedforwardFeedback(feedforward, c)
         rec = pj.closed_loop(c, plant, ref, observer=observer, noise=noise, preview=PREVIEW)
         return (ref - rec.channels["displacement"]) / AMPLITUDE
 
-    theta0 = jnp.asarray([pid.kp, pid.ki]) / scale
+    theta0 = jnp.sqrt(jnp.maximum(jnp.asarray([pid.kp, pid.ki]) / scale, 1e-2))
     sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8), theta0, max_steps=40,
                              throw=False)
-    theta = sol.value
-    return eqx.tree_at(lambda p: (p.kp, p.ki), pid, (theta[0] * scale[0], theta[1] * scale[1]))
+    kp, ki = gains(sol.value)
+    return eqx.tree_at(lambda p: (p.kp, p.ki), pid, (kp, ki))
 
 
 def control(plant, observer, train, key, quick):
@@ -393,7 +409,9 @@ def control(plant, observer, train, key, quick):
     pi0 = _OffsetPI(pj.pi_cold_start(u - BIAS, 1e6 * y, 10), jnp.asarray(0.0))
     exp = fitting.Experiment.from_arrays(v_in=u - BIAS, dt=1 / CONTROL_RATE, displacement=1e6 * y, name="pi")
     pred = fitting.Predictor(lambda m, d: {"displacement": m.pi(d.v_in) + m.offset}, ("displacement",))
-    fitted = fitting.fit(pi0, fitting.Dataset([exp]), predictor=pred, max_steps=40).model
+    result = fitting.fit(pi0, fitting.Dataset([exp]), predictor=pred, max_steps=40)
+    stop_if_interrupted(result)
+    fitted = result.model
     ff = pj.InverseFeedforward(fitted.pi.inverse(), offset=BIAS, reference_offset=1e-6 * fitted.offset,
                                reference_scale=1e-6)
     pid0 = pj.PID(0.0, 1e9, dt=1 / CONTROL_RATE, offset=0.0, u_min=-40.0, u_max=40.0)
@@ -568,14 +586,16 @@ def _figures(out: Path, cal, stage, narx, val, ctl):
 
 def main(argv=None) -> dict:
     """Command-line entry point; returns the report dict."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/chen2014", help="output folder")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=OUT, help=f"output folder (default {OUT}); an earlier output of this "
+                        "experiment is replaced whole, any other folder is refused")
     parser.add_argument("--quick", action="store_true", help="short records and fewer periods")
     parser.add_argument("--no-figures", action="store_true", help="write report.json only")
     args = parser.parse_args(argv)
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
     pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
+    out = output_folder(args.out, KIND, default=OUT)  # before any long work
     start = time.perf_counter()
     key = jax.random.key(2014)
     keys = jax.random.split(key, 6)
@@ -669,14 +689,13 @@ def main(argv=None) -> dict:
         "table": [{"quantity": a, "paper": b, "this_project": c} for a, b, c in rows],
         "run_seconds": elapsed,
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fitting.files.save_json(out / "report.json", report)
-    if not args.no_figures:
-        _figures(out, cal, stage, narx, val, ctl)
+    with writing(out, KIND) as tmp:
+        fitting.files.save_json(tmp / "report.json", report)
+        if not args.no_figures:
+            _figures(tmp, cal, stage, narx, val, ctl)
     print(f"wrote {out}")
     return report
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run(main, "python -m experiments.chen2014"))

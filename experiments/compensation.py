@@ -178,7 +178,7 @@ def print_table(rows: list) -> None:
 
 
 def main(argv: list[str] | None = None) -> list:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--fits", type=Path, help="folder with (or for) the fitted models: reused when present")
     parser.add_argument("--out", type=Path, default=Path("results/compensation"), help="result folder")
     args = parser.parse_args(argv)

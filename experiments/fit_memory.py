@@ -107,7 +107,7 @@ def child(samples: int, steps: int, chunk: int | None, n_exp: int = 8) -> dict:
 
 
 def main(argv=None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=2, help="LM steps (0: form the Jacobian once, no solve)")
     parser.add_argument("--samples", type=int, default=100_000)
     parser.add_argument("--experiments", type=int, default=8)

@@ -201,7 +201,7 @@ def recovery(realisations: int, warm: bool, seed: int = 0, verbose: bool = True,
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--realisations", type=int, default=20)
     parser.add_argument("--warm", action="store_true", help="fit the realisations from the first optimum")
     parser.add_argument("--seed", type=int, default=0)

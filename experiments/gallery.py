@@ -107,7 +107,7 @@ def fit_150v(folder: Path) -> dict[str, Path]:
 
 def main(argv=None) -> list[Path]:
     """Command-line entry point; returns the files written."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(ROOT / "experiments" / "gallery"), help="output folder")
     parser.add_argument("--width", type=int, default=900, help="largest width of a figure [pixels]")
     args = parser.parse_args(argv)

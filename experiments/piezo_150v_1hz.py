@@ -78,7 +78,9 @@ Evaluation on the full-rate data: the whole record is predicted from t = 0 (`fit
 of the measured test displacement). Measured on 2 cores (test RMSE; the sensor's noise is ≈ 0.05 µm): PI 0.0578,
 Bouc–Wen 0.0614, Maxwell slip 0.0622 µm in 80–110 s; with `--no-mode` 0.0621, 0.0634, 0.0629 µm in ≈ 65 s.
 
-Run: `python -m experiments.piezo_150v_1hz [--out results/piezo_150v_1hz] [--quick] [--no-mode]`.
+Run: `python -m experiments.piezo_150v_1hz [--out results/piezo_150v_1hz] [--quick] [--no-mode]`. The output
+folder is written atomically and replaces only an earlier output of this experiment; Ctrl-C stops it with exit
+status 130, writing nothing.
 """
 
 import argparse
@@ -88,6 +90,10 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments._command import existing_file, output_folder, positive_int, run, stop_if_interrupted, writing
+
+KIND = "experiments.piezo_150v_1hz"  # what the output folder's marker records
+OUT = "results/piezo_150v_1hz"
 DATA = Path(__file__).resolve().parent / "data" / "piezo_150V_1Hz" / "hysteresis_v_150_1hz.csv"
 T_SPLIT = 7.0  # train: t < 7 s, test: t >= 7 s
 RING_WINDOW = 0.03  # s after the voltage jump: the ringing (reported apart; its spectrum starts the resonance)
@@ -361,6 +367,7 @@ def run_fit(params, experiments, free, max_steps, label):
     _, _, _, fitting = _jax_modules()
     result = fitting.fit(params, experiments, free=free, weights={"displacement": 1.0}, max_steps=max_steps,
                          progress=False)
+    stop_if_interrupted(result)
     rms0 = float(np.sqrt(2 * result.initial_cost / result.num_residuals))
     rms1 = float(np.sqrt(2 * result.cost / result.num_residuals))
     verdict = "converged" if result.success else result.reason.split("(")[0].split(":")[0].strip()
@@ -547,16 +554,23 @@ def format_table(metrics):
 
 def main(argv=None):
     """Command-line entry point; returns the metrics dict."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/piezo_150v_1hz", help="output folder (replaced atomically)")
-    parser.add_argument("--data", default=str(DATA), help="the CSV file")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=OUT, help=f"output folder (default {OUT}); an earlier output of this "
+                        "experiment is replaced whole, any other folder is refused")
+    parser.add_argument("--data", type=existing_file, default=DATA, help="the CSV file")
     parser.add_argument("--quick", action="store_true",
                         help="5 elements, 15 steps per stage, 250 Hz, no full-rate stage: for tests")
-    parser.add_argument("--n-elements", type=int, default=None, help="plays / slip elements (default 16, quick 5)")
+    parser.add_argument("--n-elements", type=positive_int, default=None,
+                        help="plays / slip elements (default 16, quick 5)")
     parser.add_argument("--no-mode", dest="mode", action="store_false",
                         help="leave the low-frequency mode out of G(s) (no stage 2)")
     parser.add_argument("--models", default=",".join(FAMILIES), help="comma-separated subset of PI,BW,MS")
     args = parser.parse_args(argv)
+    families = [f.strip() for f in args.models.split(",") if f.strip()]
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown or not families:
+        parser.error(f"--models: {'unknown model ' + repr(unknown[0]) if unknown else 'no model'} (choose from "
+                     f"{', '.join(FAMILIES)})")
 
     import piezojax as pj
 
@@ -567,6 +581,7 @@ def main(argv=None):
     pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
     import fitting
 
+    out = output_folder(args.out, KIND, default=OUT)  # before any long work
     start = time.perf_counter()
     if args.quick:
         settings = {"n_elements": 5, "max_steps": 15, "max_steps_dynamics": 0, "decimate": 20}
@@ -575,11 +590,7 @@ def main(argv=None):
     settings["mode"] = bool(args.mode)
     if args.n_elements is not None:
         settings["n_elements"] = args.n_elements
-    families = [f.strip() for f in args.models.split(",") if f.strip()]
-    for f in families:
-        if f not in FAMILIES:
-            raise SystemExit(f"--models: unknown model {f!r} (choose from {', '.join(FAMILIES)})")
-    data = load_data(Path(args.data))
+    data = load_data(args.data)
     record = fitting.Experiment.from_arrays(v_in=data["v"], t=data["t"], displacement=data["x"], name="piezo 150 V")
     print(
         f"data: {len(data['t'])} samples, dt = {data['dt'] * 1e3:.4f} ms, voltage jump at t = {data['t_jump']:.4f} s; "
@@ -606,8 +617,7 @@ def main(argv=None):
         "fit_info": infos,
         "run_seconds": elapsed,
     }
-    out = Path(args.out)
-    with fitting.files.atomic_directory(out, overwrite=True) as tmp:
+    with writing(out, KIND) as tmp:
         fitting.files.save_json(tmp / "metrics.json", report)
         (tmp / "table.txt").write_text(table + "\n")
         np.savez_compressed(tmp / "predictions.npz", t=data["t"], x=data["x"], v=data["v"], **preds)
@@ -619,4 +629,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(run(main, "python -m experiments.piezo_150v_1hz"))

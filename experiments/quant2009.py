@@ -65,6 +65,7 @@ inverse and the load studies, and writes `report.json` and figures (`loops.png`,
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -77,6 +78,10 @@ import scipy.signal
 
 import fitting
 import piezojax as pj
+from experiments._command import output_folder, run, stop_if_interrupted, writing
+
+KIND = "experiments.quant2009"  # what the output folder's marker records
+OUT = "results/quant2009"
 
 ELEMENTS = 11  # Fig. 39: "Maxwell hysteresis model with 11 elements"
 AMPLITUDE = 150.0  # V, the validation signals
@@ -295,8 +300,7 @@ def joint(start: pj.ElectromechanicalActuator, recs: dict, dt: float, max_steps:
     t0 = time.perf_counter()
     result = fitting.fit(model, fitting.Dataset(exps), predictor=PREDICTOR, free=free, max_steps=max_steps,
                          progress=False)
-    if result.code == "interrupted":  # Ctrl-C: the solver returned its last point; stop rather than report it
-        raise KeyboardInterrupt
+    stop_if_interrupted(result)  # Ctrl-C: the solver returned its last point; stop rather than report it
     return {"model": pj.unwrap(result.model), "seconds": time.perf_counter() - t0, "steps": int(result.steps),
             "verdict": result.code, "initial_cost": float(result.initial_cost), "cost": float(result.cost)}
 
@@ -457,13 +461,15 @@ def _figures(out: Path, bench, val_recs, models, lin, load, rate) -> None:
 
 def main(argv=None) -> dict:
     """Command-line entry point; returns the report dict."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/quant2009", help="output folder")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=OUT, help=f"output folder (default {OUT}); an earlier output of this "
+                        "experiment is replaced whole, any other folder is refused")
     parser.add_argument("--quick", action="store_true", help="shorter records and at most 25 joint steps")
     parser.add_argument("--no-figures", action="store_true", help="write report.json only")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
+    out = output_folder(args.out, KIND, default=OUT)  # before any long work
     start = time.perf_counter()
     bench = pj.QuantBench()
     rate = bench.sample_rate
@@ -557,14 +563,13 @@ def main(argv=None) -> dict:
                for label, e in s["rows"].items()} for n, s in load.items()},
         "run_seconds": elapsed,
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fitting.files.save_json(out / "report.json", report)
-    if not args.no_figures:
-        _figures(out, bench, val_recs, models, lin, load, rate)
+    with writing(out, KIND) as tmp:
+        fitting.files.save_json(tmp / "report.json", report)
+        if not args.no_figures:
+            _figures(tmp, bench, val_recs, models, lin, load, rate)
     print(f"wrote {out}")
     return report
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run(main, "python -m experiments.quant2009"))

@@ -510,6 +510,12 @@ def _is_empty_directory(p: Path) -> bool:
         return False
 
 
+def _command(kind: str) -> str:
+    """The command whose output a marker's `kind` records: `piezojax fit`, or `python -m experiments.NAME` for a
+    reproduction (`kind` "experiments.NAME")."""
+    return f"`python -m {kind}`" if kind.startswith("experiments.") else f"`piezojax {kind}`"
+
+
 def check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, option: str = "overwrite=True", *,
                                  look_for_added: bool = True) -> None:
     """Refuse, before any work, an output directory that must not be created or replaced (see `atomic_directory`);
@@ -531,10 +537,10 @@ def check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opti
     refusing = f"refusing to replace {str(p)!r}{'' if overwrite else ', which already exists'}"
     found = read_marker(p)
     if found != kind:
-        held = "has no piezojax marker" if found is None else f"holds the output of `piezojax {found}`"
+        held = "has no piezojax marker" if found is None else f"holds the output of {_command(found)}"
         raise PiezojaxValueError(
             f"{refusing}: it {held}, and {option} "
-            f"replaces only the output of an earlier `piezojax {kind}` (a folder with the marker file {MARKER}); "
+            f"replaces only the output of an earlier {_command(kind)} (a folder with the marker file {MARKER}); "
             "remove it yourself or choose another output folder"
         )
     try:
@@ -545,7 +551,7 @@ def check_replaceable_directory(p: Path, overwrite: bool, kind: str | None, opti
         shown = ", ".join(repr(e) for e in added[:5]) + (f" and {len(added) - 5} more" if len(added) > 5 else "")
         raise PiezojaxValueError(
             f"{refusing}: it holds what "
-            f"the earlier `piezojax {kind}`{' or `FitResult.save`' if kind == 'fit' else ''} did not write there "
+            f"the earlier {_command(kind)}{' or `FitResult.save`' if kind == 'fit' else ''} did not write there "
             f"({shown}), which {option} would delete; move that out of the "
             "folder, or choose another output folder"
         )

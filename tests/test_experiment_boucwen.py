@@ -9,7 +9,7 @@ import pytest
 
 import fitting
 import piezojax as pj
-from experiments import boucwen_benchmark as exp
+from experiments import _command as exp_command, boucwen_benchmark as exp
 
 FS = 750.0
 DT = 1 / FS
@@ -97,10 +97,12 @@ def test_file_errors(tmp_path):
     # the command line turns it into one error line (before any fitting)
     with h5py.File(path, "w") as f:
         f["other/u"] = np.zeros(4)
-    with pytest.raises(SystemExit, match=r"^error: .*t\.h5: neither group") as info:
+    with pytest.raises(exp.BenchmarkFileError, match=r"t\.h5: neither group") as info:
         exp.main(["--test", str(path), "--out", str(tmp_path / "out")])
     assert "\n" not in str(info.value)
     assert not (tmp_path / "out").exists()
+    code = exp_command.run(lambda: exp.main(["--test", str(path), "--out", str(tmp_path / "out")]), "boucwen")
+    assert code == 2 and not (tmp_path / "out").exists()
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -131,7 +133,8 @@ def test_quick_run_outputs(quick_run):
     assert metrics["metrics"]["validation_samples"] == "32768..40959"
     assert metrics["metrics"]["train_samples"] == "8192..32767"
     # nothing temporary left behind
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "test_rmse.json", "validation.png"]
+    assert sorted(p.name for p in out.iterdir()) == [fitting.files.MARKER, "metrics.json", "test_rmse.json",
+                                                      "validation.png"]
 
 
 def test_quick_run_errors_at_noise_level(quick_run):

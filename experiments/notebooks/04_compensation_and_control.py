@@ -296,14 +296,20 @@ def e_rms(controller):
 # gradients straight through it, and finite differences of the quantised loop would measure the staircase instead.
 
 # %%
-SCALE = jnp.asarray([1e6, 1e9])  # kp [V/m], ki [V/(m s)]: the parameters are theta * SCALE
+SCALE = jnp.asarray([1e6, 1e9])  # kp [V/m], ki [V/(m s)]: the gains are SCALE * theta**2, never negative
 pid_start = pj.PID(0.0, 1e9, dt=1 / RATE, offset=100.0, u_min=-20.0, u_max=200.0)
 smooth_stage = bench.ideal().plant(1 / RATE, bias=100.0, substeps=2, dac_bits=0, settle=0.1)
 n_check = 300
 
 
 def with_gains(pid, theta):
-    return eqx.tree_at(lambda p: (p.kp, p.ki), pid, (theta[0] * SCALE[0], theta[1] * SCALE[1]))
+    kp, ki = SCALE * theta**2
+    return eqx.tree_at(lambda p: (p.kp, p.ki), pid, (kp, ki))
+
+
+def theta_of(kp, ki):
+    # a gain below 1e-2 SCALE starts there: at 0 the square has no slope
+    return jnp.sqrt(jnp.maximum(jnp.asarray([kp, ki]) / SCALE, 1e-2))
 
 
 @eqx.filter_jit
@@ -329,7 +335,9 @@ assert rel.max() < 1e-4, rel
 #
 # With the gradient available, the gains can be fitted like any model parameter: the residuals
 # $(r_k - x_k)/3\,\mu\mathrm{m}$ of the simulated loop go to `optimistix.least_squares` with Levenberg–Marquardt,
-# which differentiates through the whole closed loop (on the realistic bench: noise, ADC and DAC). We tune a PID
+# which differentiates through the whole closed loop (on the realistic bench: noise, ADC and DAC); the gains are
+# parametrised as $k = s\theta^2$, so they never turn negative (unconstrained, the proportional gain behind the
+# feedforward below went negative: positive feedback that happened to lower this record's error). We tune a PID
 # alone, and a PID behind an inverse feedforward (`pj.FeedforwardFeedback(pj.InverseFeedforward(...), pid)`): the
 # feedforward is the analytic inverse of a PI operator initialised by `pj.pi_cold_start` from an open-loop record of
 # the stage (two sines about the bias), and the PID is meant to correct what the PI model misses. Both PIDs start
@@ -354,7 +362,7 @@ def tune(pid, ff=None, max_steps=20 if SMALL else 40):
         c = c if ff is None else pj.FeedforwardFeedback(ff, c)
         return (ref - loop(c, ref, noise).channels["displacement"]) / 3e-6
 
-    theta0 = jnp.asarray([pid.kp, pid.ki]) / SCALE
+    theta0 = theta_of(pid.kp, pid.ki)
     sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8), theta0, max_steps=max_steps,
                              throw=False)
     return with_gains(pid, sol.value), int(sol.stats["num_steps"])
@@ -369,7 +377,7 @@ controllers = {
     "PID, start gains": pid_start,
     "PID, tuned": pid_tuned,
     "PI inverse + PID, PID-alone gains": pj.FeedforwardFeedback(
-        feedforward, with_gains(pid_ff_start, jnp.asarray([pid_tuned.kp, pid_tuned.ki]) / SCALE)),
+        feedforward, with_gains(pid_ff_start, jnp.sqrt(jnp.asarray([pid_tuned.kp, pid_tuned.ki]) / SCALE))),
     "PI inverse + PID, tuned": pj.FeedforwardFeedback(feedforward, pid_ff_tuned),
 }
 part2, records = {}, {}
