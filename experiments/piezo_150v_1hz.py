@@ -108,20 +108,26 @@ def load_data(path: Path = DATA) -> dict:
     **Returns:** dict with `t`, `x` (µm), `v` (V), `dt` (s, the mean step; checked uniform to 1e-6 relative) and
     `t_jump` (the first sample with nonzero voltage).
     """
+    from piezojax import PiezojaxValueError
+
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"data file not found: {path}")
-    d = np.genfromtxt(path, delimiter=",")
-    if d.ndim != 2 or d.shape[1] != 4:
-        raise ValueError(f"{path}: expected 4 comma-separated fields per row, got shape {d.shape}")
+        raise PiezojaxValueError(f"data file not found: {path}")
+    try:
+        d = np.genfromtxt(path, delimiter=",")
+    except ValueError as e:  # rows of different lengths
+        raise PiezojaxValueError(f"{path}: not a CSV of 4 comma-separated fields per row "
+                                 f"({str(e).strip().splitlines()[-1].strip()})") from None
+    if d.ndim != 2 or d.shape[1] != 4 or d.shape[0] < 2:
+        raise PiezojaxValueError(f"{path}: expected rows of 4 comma-separated fields, got shape {d.shape}")
     t, x, v = d[:, 1], d[:, 2], d[:, 3]
     for name, col in (("time", t), ("displacement", x), ("voltage", v)):
         if not np.all(np.isfinite(col)):
-            raise ValueError(f"{path}: column `{name}` contains NaN or infinite values")
+            raise PiezojaxValueError(f"{path}: column `{name}` contains NaN or infinite values")
     steps = np.diff(t)
     dt = (t[-1] - t[0]) / (len(t) - 1)
-    if np.max(np.abs(steps - dt)) > 1e-3 * dt:
-        raise ValueError(f"{path}: column `time` is not uniformly sampled")
+    if not dt > 0 or np.max(np.abs(steps - dt)) > 1e-3 * dt:
+        raise PiezojaxValueError(f"{path}: column `time` is not uniformly sampled")
     jump = int(np.argmax(v != 0))
     return {"t": t, "x": x, "v": v, "dt": dt, "t_jump": float(t[jump])}
 

@@ -132,7 +132,7 @@ def test_load_data_checks_the_file(tmp_path):
     assert len(data["t"]) == 50_001
     assert data["dt"] == pytest.approx(2e-4, rel=1e-3)
     assert data["t_jump"] == pytest.approx(3.2572, abs=1e-3)
-    with pytest.raises(FileNotFoundError, match="not found"):
+    with pytest.raises(pj.PiezojaxValueError, match="not found"):
         exp.load_data(tmp_path / "missing.csv")
     bad = tmp_path / "bad.csv"
     bad.write_text(",0,1.0,0\n,0.0002,nan,0\n,0.0004,1.0,0\n")
