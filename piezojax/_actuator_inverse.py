@@ -107,7 +107,7 @@ class ActuatorInverse(eqx.Module):
         # with H^-1 linearised as h / s (s: the chord slope of H over the creep-free inverse),
         # h <- h - (I + C / s)^-1 (h + C[H^-1[h]] - u)
         v0 = m._invert_hysteresis(u)
-        slope = jax.lax.stop_gradient(jnp.ptp(u) / jnp.maximum(jnp.ptp(v0), jnp.finfo(dtype).tiny))
+        slope = jax.lax.stop_gradient(_chord_slope(u, v0, h_r))
         solve = _toeplitz_inverse((kernel / slope).at[0].add(1.0))
 
         def parallel(h):
@@ -122,6 +122,17 @@ class ActuatorInverse(eqx.Module):
         if self.hysteresis_inverse is None:
             return self._clip(h)
         return self.hysteresis_inverse.scan(h, self.hysteresis_state)[1]
+
+
+def _chord_slope(u: Array, v: Array, h_rest: Array) -> Array:
+    """The chord slope of the hysteresis over the samples $(v_k, u_k)$: their output range over their voltage range;
+    for a constant reference (no range) the chord from the rest point $(0, h_{rest})$ to them; 1 where neither has
+    one (the reference is the rest output, which the iteration keeps as it is)."""
+    tiny = jnp.finfo(u.dtype).tiny
+    du, dv = jnp.ptp(u), jnp.ptp(v)
+    du_rest, dv_rest = jnp.max(jnp.abs(u - h_rest)), jnp.max(jnp.abs(v))
+    return jnp.where((du > 0) & (dv > 0), du / jnp.maximum(dv, tiny),
+                     jnp.where((du_rest > 0) & (dv_rest > 0), du_rest / jnp.maximum(dv_rest, tiny), 1.0))
 
 
 def _toeplitz_inverse(kernel: Array) -> Array:
@@ -144,7 +155,13 @@ def _fixed_point(update, x0: Array, iterations: int, structure: str) -> Array:
     refused, never returned)."""
     if iterations == 0:
         return x0
-    x_prev = jax.lax.scan(lambda x, _: (update(x), None), x0, None, length=iterations - 1)[0]
+    def step(x, _):
+        # a diverging iteration keeps its last finite iterate, so that the check below names the iteration (the
+        # next update's own input checks would otherwise stop it at a NaN)
+        new = update(x)
+        return jnp.where(jnp.all(jnp.isfinite(new)), new, x), None
+
+    x_prev = jax.lax.scan(step, x0, None, length=iterations - 1)[0]
     x = update(x_prev)
     moved = jnp.max(jnp.abs(x - x_prev))
     scale = jnp.max(jnp.abs(x))

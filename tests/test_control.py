@@ -30,12 +30,12 @@ def _plant():
 
 
 def _pid_by_hand(kp, ki, kd, dt, r, w, a, b, u_min, u_max, tf, tt):
-    x, integ, y_prev, d = 0.0, 0.0, 0.0, 0.0
+    x, integ, y_prev, d = 0.0, 0.0, None, 0.0  # the derivative starts at rest at the first measurement
     us, ys = [], []
     for k in range(len(r)):
         y = x + w[k]
         e = r[k] - y
-        d = (tf * d - kd * (y - y_prev)) / (tf + dt)
+        d = (tf * d - kd * (y - (y if y_prev is None else y_prev))) / (tf + dt)
         v = kp * e + integ + d
         u = min(max(v, u_min), u_max)
         integ = integ + ki * dt * e + dt / tt * (u - v)
@@ -44,6 +44,16 @@ def _pid_by_hand(kp, ki, kd, dt, r, w, a, b, u_min, u_max, tf, tt):
         ys.append(y)
         x = a * x + b * u
     return np.array(us), np.array(ys)
+
+
+def test_pid_derivative_starts_at_the_first_measurement():
+    """A plant read at 5 from the start and a reference at 5: a derivative-only PID commands nothing (it had
+    kicked on the first sample, from a previous measurement taken as 0); `init(measurement)` still sets it."""
+    pid = pj.PID(0.0, 0.0, 0.05, dt=1e-3)
+    rec = pj.closed_loop(pid, _plant(), jnp.full(5, 5.0), noise=jnp.full(5, 5.0))
+    np.testing.assert_array_equal(rec.control, 0.0)
+    state, u = pid.step(pid.init(0.0), 5.0, 5.0)
+    assert float(u) == pytest.approx(-0.05 * 5.0 / 2e-3)  # (T_f D - k_d (y - y_prev)) / (T_f + dt), T_f = dt
 
 
 def test_closed_loop_matches_a_hand_written_loop():
@@ -224,6 +234,19 @@ def test_narx_cell_simulation_one_step_and_online_training():
     assert rms_free(trained) < 0.5 * rms_free(net)
 
 
+def test_narx_without_output_lags():
+    """`output_lags=0`: a static network of the past inputs; its free run is its one-step prediction (the cell had
+    shifted an empty output history and failed)."""
+    rng = np.random.default_rng(2)
+    net = pj.NarxNetwork(jax.random.key(3), hidden=4, output_lags=0, input_lags=2)
+    net = eqx.tree_at(lambda m: m.output_weights, net, jnp.asarray(rng.standard_normal(4)))
+    x = jnp.asarray(rng.standard_normal(50))
+    sim = eqx.filter_jit(net.simulate)(x)
+    np.testing.assert_allclose(sim[3:], net.one_step(x, jnp.zeros(50))[3:], rtol=1e-12, atol=1e-14)
+    with pytest.raises(pj.PiezojaxValueError, match="`delay` must be an int"):
+        pj.NarxNetwork(jax.random.key(0), hidden=3, output_lags=1, input_lags=1, delay=True)
+
+
 def test_control_bad_input():
     with pytest.raises(pj.PiezojaxValueError, match="u_max"):
         pj.PID(1.0, dt=0.01, u_min=1.0, u_max=0.0)
@@ -306,3 +329,16 @@ def test_network_controllers_name_a_key_that_is_no_key():
         make(jax.random.PRNGKey(0))
         with jax.default_prng_impl("rbg"):  # a raw key of another implementation has another length
             make(jax.random.PRNGKey(0))
+
+
+def test_float32_controllers_stay_float32():
+    """Under x64, a PID built from float32 gains keeps its Python-number defaults (offset, limits) in float32, and so
+    does a feedforward of a float32 model: the commands come out float32."""
+    f32 = np.float32
+    pid = pj.PID(f32(0.4), f32(30.0), dt=f32(0.01))
+    assert {leaf.dtype for leaf in jax.tree.leaves(pid)} == {jnp.dtype("float32")}
+    r = jnp.ones(5, jnp.float32)
+    assert pid(r, r).dtype == jnp.float32
+    pi32 = pj.PrandtlIshlinskii(jnp.full(2, 0.5, jnp.float32), jnp.asarray([0.1, 0.3], jnp.float32), w0=f32(1.0))
+    ff = pj.InverseFeedforward(pi32.inverse(), offset=100.0, reference_scale=1e-6)
+    assert ff(r, r).dtype == jnp.float32

@@ -284,6 +284,20 @@ def test_actuator_inverse_without_dynamics_is_exact(name):
         np.testing.assert_allclose(v_inv, V, atol=1e-7)
 
 
+@pytest.mark.parametrize("name", list(_actuators()))
+def test_actuator_inverse_of_a_constant_reference(name):
+    """A constant reference has no range for the parallel iteration's chord slope: the chord from the rest point is
+    used instead (it had divided by a zero range: NaN). Held at a level, the drive creeps back as the creep builds up;
+    held at the rest output, it stays at 0 V."""
+    act = _actuators()[name]
+    level = act.simulate(jnp.full(400, 40.0), DT).displacement[0]
+    rest = act.simulate(jnp.zeros(2), DT).displacement[0]
+    for d in (jnp.full(400, level), jnp.full(1, level), jnp.full(400, rest)):
+        v = act.inverse(lower=-100.0, upper=300.0)(d, DT)
+        np.testing.assert_allclose(act.simulate(v, DT).displacement, d, rtol=1e-9, atol=1e-15 * float(abs(level)))
+    np.testing.assert_allclose(v, 0.0, atol=1e-9)
+
+
 @pytest.mark.parametrize("structure", ["parallel", "series"])
 def test_actuator_inverse_with_dynamics_tracks_the_reference(structure):
     """With a 400 Hz resonance, the simulated displacement follows the reference to < 1e-4 of its range after the
@@ -344,3 +358,10 @@ def test_actuator_inverse_errors():
         act.inverse()(jnp.array([0.0, jnp.inf]), DT)
     with pytest.raises(pj.PiezojaxValueError, match="`hold`"):
         act.inverse()(jnp.zeros(3), DT, hold="linear")
+    # a parallel creep far stronger than the hysteresis: the iteration diverges, and the error says so (its iterate
+    # had turned NaN first, and the hysteresis inverse's input check reported a NaN `signal` instead)
+    t = jnp.arange(0.0, 0.3, 1e-3)
+    strong = pj.Actuator(pj.PrandtlIshlinskii(jnp.full(4, 5e-9), jnp.linspace(0.0, 50.0, 4), w0=2e-8),
+                         pj.KelvinVoigtCreep(jnp.array([5e5]), jnp.array([0.005]), k0=None))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="parallel creep's fixed-point iteration did not converge"):
+        eqx.filter_jit(lambda a: a.inverse(iterations=20)(1e-6 * (1 - jnp.cos(2 * jnp.pi * 5 * t)), 1e-3))(strong)

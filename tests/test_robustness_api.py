@@ -101,6 +101,32 @@ def sensor_layer(**kw):
     return pj.SensorLayerObserver(**args)
 
 
+KEY = jax.random.key(0)
+
+
+def narx(**kw):
+    args = dict(hidden=2, output_lags=1, input_lags=1)
+    args.update(kw)
+    return pj.NarxNetwork(KEY, **args)
+
+
+class _Plant(pj.AbstractPlant):
+    """x_{k+1} = 0.9 x_k + 0.5 u_k, read as the displacement."""
+
+    def init(self):
+        return jnp.zeros(())
+
+    def output(self, state, noise):
+        return {"displacement": state + (0.0 if noise is None else noise)}
+
+    def step(self, state, command):
+        return 0.9 * state + 0.5 * command
+
+
+def plant():
+    return _Plant()
+
+
 def replaced(module, where, value):
     """`module` with one leaf replaced after __init__ (bypassing the constructor's checks)."""
     return eqx.tree_at(where, module, jnp.asarray(value))
@@ -260,10 +286,48 @@ CONCRETE = [
     ("ordered-value-inf", lambda: pj.OrderedPositive.from_value([0.5, INF]), "`value`"),
     ("bounded-raw-complex", lambda: pj.Bounded(cplx([0.0]), 0.0, 1.0), "`raw`"),
     ("bounded-high-inf", lambda: pj.Bounded([0.0], 0.0, INF), "`high`"),
+    # -- control
+    ("pid-kp-nan", lambda: pj.PID(NAN, dt=DT), "`kp`"),
+    ("pid-ki-inf", lambda: pj.PID(1.0, INF, dt=DT), "`ki`"),
+    ("pid-offset-nan", lambda: pj.PID(1.0, dt=DT, offset=NAN), "`offset`"),
+    ("pid-u_min-nan", lambda: pj.PID(1.0, dt=DT, u_min=NAN), "`u_min`"),
+    ("pid-replaced-dt-negative", lambda: replaced(pj.PID(1.0, dt=DT), lambda m: m.dt, -DT)(SIG, SIG), "`dt`"),
+    ("pid-replaced-tracking_time-zero",
+     lambda: pj.closed_loop(replaced(pj.PID(1.0, dt=DT), lambda m: m.tracking_time, 0.0), plant(), SIG),
+     "`tracking_time`"),
+    ("aic-offset-nan", lambda: pj.AdaptiveInverseController(KEY, hidden=2, offset=NAN), "`offset`"),
+    ("aic-output_offset-inf", lambda: pj.AdaptiveInverseController(KEY, hidden=2, output_offset=INF),
+     "`output_offset`"),
+    ("aic-command_scale-vector", lambda: pj.AdaptiveInverseController(KEY, hidden=2, command_scale=[1.0, 2.0]),
+     "`command_scale`"),
+    ("feedforward-reference_scale-zero", lambda: pj.InverseFeedforward(pi().inverse(), reference_scale=0.0),
+     "`reference_scale`"),
+    ("feedforward-reference_scale-vector", lambda: pj.InverseFeedforward(pi().inverse(), reference_scale=[1.0, 2.0]),
+     "`reference_scale`"),
+    ("narx-output_offset-nan", lambda: narx(output_offset=NAN), "`output_offset`"),
+    ("narx-delay-bool", lambda: narx(delay=True), "`delay`"),
+    ("narx-train-learning_rate-nan", lambda: pj.train_narx_online(narx(), SIG, SIG, learning_rate=NAN),
+     "`learning_rate`"),
+    ("narx-train-learning_rate-negative", lambda: pj.train_narx_online(narx(), SIG, SIG, learning_rate=-1.0),
+     "`learning_rate`"),
+    ("narx-train-momentum-5", lambda: pj.train_narx_online(narx(), SIG, SIG, learning_rate=0.1, momentum=5.0),
+     "`momentum`"),
+    ("narx-train-epochs-bool", lambda: pj.train_narx_online(narx(), SIG, SIG, learning_rate=0.1, epochs=True),
+     "`epochs`"),
+    ("loop-noise-nan", lambda: pj.closed_loop(pj.PID(1.0, dt=DT), plant(), SIG, noise=np.full(SIG.size, NAN)),
+     "`noise`"),
+    ("tracking-error-constant-reference", lambda: pj.tracking_error_percent(np.ones(4), SIG[:4]), "`reference`"),
+    ("bwo-state0-nan", lambda: pj.BoucWenOscillator().simulate(SIG, DT, state0=[NAN, 0.0, 0.0]), "`state0`"),
+    ("bwo-rtol-negative", lambda: pj.BoucWenOscillator().simulate(SIG, DT, rtol=-1e-8), "`rtol`"),
+    ("bwo-num_samples-bool", lambda: pj.BoucWenOscillator().simulate(SIG, DT, num_samples=True), "`num_samples`"),
+    ("sampled-evaluate-vector-t", lambda: pj.SampledInput.from_samples(SIG, DT).evaluate(np.zeros(3)), "`t`"),
     # -- virtual benches
     ("bafumba-alpha-nan", lambda: pj.BafumbaBench(alpha=NAN), "`alpha`"),
     ("bafumba-v_command-complex", lambda: pj.BafumbaBench().record(cplx(SIG), None), "`v_command`"),
     ("chen-stroke-inf", lambda: pj.ChenBench(stroke=INF), "`stroke`"),
+    ("chen-plant-bias-nan", lambda: pj.ChenBench().plant(bias=NAN), "`bias`"),
+    ("chen-plant-amplifier_gain-nan", lambda: pj.ChenBench().plant(amplifier_gain=NAN), "`amplifier_gain`"),
+    ("chen-plant-dac_bits-negative", lambda: pj.ChenBench().plant(dac_bits=-1), "`dac_bits`"),
     ("ivan-gap-nan", lambda: pj.IvanBench(gap=NAN), "`gap`"),
 ]
 
@@ -335,6 +399,9 @@ TRACED = [
     ("jit-actuator-nested-weights-nan-replaced",
      _outside(pj.Actuator(pi()), lambda m: m.hysteresis.weights, [1.0, INF], lambda m: m(SIG_J, DT).charge),
      RUNTIME, "`weights`"),
+    ("jit-pid-kd-nan-replaced",
+     _outside(pj.PID(1.0, dt=DT), lambda m: m.kd, NAN, lambda m: pj.closed_loop(m, plant(), SIG_J).control), RUNTIME,
+     "`kd`"),
     ("jit-tia-bias_current-nan-replaced",
      _outside(tia(), lambda m: m.bias_current, NAN, lambda m: m(SIG_J, DT)), RUNTIME, "`bias_current`"),
     ("jit-positive-raw-nan-inside", _inside(lambda r: pj.Positive(r).unwrap(), [NAN]), RUNTIME, "`raw`"),

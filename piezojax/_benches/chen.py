@@ -1,5 +1,7 @@
 """Virtual bench of paper 002: a smart piezo stack (sensor layer + charge amplifier) in a preloaded flexure stage."""
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -188,7 +190,8 @@ class ChenBench(AbstractSelfSensingBench):
         - `substeps`: integration steps per period (the drive is held, the truth is integrated on the finer grid).
         - `amplifier_gain` [V/V], `dac_bits`, `dac_range` [V]: the command $u$ (the stack voltage wanted) is written
           by a `dac_bits`-bit converter of range ±`dac_range` V (NI PXI-6733: 16 bits, ±10 V) and amplified
-          `amplifier_gain` times (20 V/V), then limited to [`v_min`, `v_max`] (−20 V to 200 V).
+          `amplifier_gain` times (20 V/V), then limited to [`v_min`, `v_max`] (−20 V to 200 V); `dac_bits=0`: no
+          quantisation.
         - `bias` [V]: the voltage the stage rests at before the first command (paper: 100 V, so that it can move
           both ways), reached by a ramp from 0 V and held `settle` seconds; the charge amplifier is reset there
           and the `displacement` and `laser` channels read from that rest position (as the laser is zeroed).
@@ -222,11 +225,17 @@ class ChenStagePlant(AbstractPlant):
     v_max: float = eqx.field(static=True)
 
     def __init__(self, bench, dt, substeps, amplifier_gain, dac_bits, dac_range, v_min, v_max, bias=0.0, settle=0.5):
-        if not isinstance(substeps, int) or substeps < 1:
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
             raise PiezojaxValueError(f"`substeps` must be a positive int, got {substeps!r}")
-        if not dt > 0:
-            raise PiezojaxValueError(f"`dt` must be > 0, got {dt!r}")
-        if not v_max > v_min:
+        if isinstance(dac_bits, bool) or not isinstance(dac_bits, int) or dac_bits < 0:
+            raise PiezojaxValueError(f"`dac_bits` must be an int >= 0 (0: no quantisation), got {dac_bits!r}")
+        for name, value in (("dt", dt), ("amplifier_gain", amplifier_gain), ("dac_range", dac_range)):
+            if not math.isfinite(value) or not value > 0:
+                raise PiezojaxValueError(f"`{name}` must be finite and > 0, got {value!r}")
+        for name, value in (("bias", bias), ("settle", settle)):
+            if not math.isfinite(value):
+                raise PiezojaxValueError(f"`{name}` must be finite, got {value!r}")
+        if not v_max > v_min:  # NaN fails too
             raise PiezojaxValueError(f"`v_max` must be greater than `v_min`, got {v_min!r}, {v_max!r}")
         self.bench, self.dt, self.substeps = bench, float(dt), substeps
         self.amplifier_gain, self.dac_bits, self.dac_range = float(amplifier_gain), int(dac_bits), float(dac_range)

@@ -17,37 +17,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .._checks import PiezojaxValueError, as_parameter_array, check_finite, check_positive, check_signal, check_step
+from .._checks import PiezojaxValueError, check_signal, check_step
 from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
-
-
-def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False) -> Array:
-    """Constructor check of a scalar parameter: a real scalar, finite and > 0 (>= 0 with `allow_zero`)."""
-    x = as_parameter_array(x, name)
-    if x.ndim != 0:
-        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
-    return check_positive(x, name, allow_zero)
-
-
-def check_scalar_param(x: ArrayLike, name: str) -> Array:
-    """Constructor check of a signed scalar parameter: a real scalar, finite."""
-    x = as_parameter_array(x, name)
-    if x.ndim != 0:
-        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
-    return check_finite(x, name)
-
-
-def error_if_not_positive(module: eqx.Module, names: tuple[str, ...], allow_zero: tuple[str, ...] = ()) -> eqx.Module:
-    """`check_positive` on the named scalar fields (> 0, or >= 0 for those in `allow_zero`); the checked module."""
-    checked = tuple(check_positive(getattr(module, n), n, n in allow_zero) for n in names)
-    return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), module, checked)
-
-
-def error_if_not_finite(module: eqx.Module, names: tuple[str, ...]) -> eqx.Module:
-    """`check_finite` on the named fields; the checked module."""
-    checked = tuple(check_finite(getattr(module, n), n) for n in names)
-    return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), module, checked)
 
 
 def prepare(module: eqx.Module, dt: ArrayLike, **signals: ArrayLike):

@@ -3,16 +3,19 @@
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_component
+from .._checks import (
+    PiezojaxValueError,
+    check_component,
+    check_positive_param,
+    check_scalar_param,
+    error_if_not_finite,
+    error_if_not_positive,
+)
 from .._custom_types import Signal, SignalLike
 from .._hysteresis.base import AbstractHysteresis
 from .._linear.transfer_function import TransferFunction
 from .base import (
     AbstractCircuit,
-    check_positive_param,
-    check_scalar_param,
-    error_if_not_finite,
-    error_if_not_positive,
     prepare,
 )
 

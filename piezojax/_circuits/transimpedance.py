@@ -2,16 +2,19 @@
 
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_component
+from .._checks import (
+    PiezojaxValueError,
+    check_component,
+    check_positive_param,
+    check_scalar_param,
+    error_if_not_finite,
+    error_if_not_positive,
+)
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
 from .._linear.base import AbstractLinearSystem
 from .base import (
     AbstractCircuit,
-    check_positive_param,
-    check_scalar_param,
-    error_if_not_finite,
-    error_if_not_positive,
     interval_current,
     prepare,
 )

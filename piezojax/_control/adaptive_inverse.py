@@ -5,10 +5,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from .._checks import PiezojaxValueError, as_parameter_array, check_signal, check_value
-from .._dtypes import matmul, module_float_dtype
+from .._checks import PiezojaxValueError, check_signal, check_value, error_if_not_finite
+from .._dtypes import matmul, module_float_dtype, param_dtype
 from .._parametrisation import setting
-from .base import AbstractController
+from .base import AbstractController, check_limits, scalar_setting
 from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
@@ -98,25 +98,37 @@ class AdaptiveInverseController(AbstractController):
             if not isinstance(value, int) or isinstance(value, bool) or value < least:
                 raise PiezojaxValueError(f"`{name}` must be an int >= {least}, got {value!r}")
         self.measurement_lags, self.reference_lags, self.preview = measurement_lags, reference_lags, preview
-        self.learning_rate = check_value(as_parameter_array(learning_rate, "learning_rate"), lambda a: a >= 0,
-                                         "`learning_rate` must be >= 0")
-        self.momentum = check_value(as_parameter_array(momentum, "momentum"), lambda a: (a >= 0) & (a < 1),
-                                    "`momentum` must be in [0, 1)")
-        self.offset = as_parameter_array(offset, "offset")
-        self.command_scale = check_value(as_parameter_array(command_scale, "command_scale"), lambda s: s > 0,
-                                         "`command_scale` must be > 0")
-        self.output_offset = as_parameter_array(output_offset, "output_offset")
-        self.output_scale = check_value(as_parameter_array(output_scale, "output_scale"), lambda s: s > 0,
-                                        "`output_scale` must be > 0")
-        self.u_min = as_parameter_array(u_min, "u_min")
-        self.u_max = check_value(as_parameter_array(u_max, "u_max"), lambda a: a > self.u_min,
-                                 "`u_max` must be greater than `u_min`")
+        dtype = param_dtype(learning_rate, momentum, offset, command_scale, output_offset, output_scale, u_min, u_max)
+        self.learning_rate = scalar_setting(learning_rate, "learning_rate", dtype=dtype)
+        self.momentum = scalar_setting(momentum, "momentum", dtype=dtype)
+        self.offset = scalar_setting(offset, "offset", dtype=dtype)
+        self.command_scale = scalar_setting(command_scale, "command_scale", dtype=dtype)
+        self.output_offset = scalar_setting(output_offset, "output_offset", dtype=dtype)
+        self.output_scale = scalar_setting(output_scale, "output_scale", dtype=dtype)
+        self.u_min = scalar_setting(u_min, "u_min", finite=False, dtype=dtype)
+        self.u_max = scalar_setting(u_max, "u_max", finite=False, dtype=dtype)
+        checked = self._checked_settings()
+        (self.learning_rate, self.momentum, self.command_scale, self.output_scale, self.u_min, self.u_max) = checked
         dtype = self.output_scale.dtype
         self.hidden_weights, self.hidden_bias = random_hidden_layer(
             key, hidden, measurement_lags + reference_lags, dtype
         )
         self.output_weights = jnp.zeros((hidden,), dtype)
         self.output_bias = jnp.zeros((), dtype)
+
+    def _checked_settings(self) -> tuple[Array, ...]:
+        learning_rate = check_value(self.learning_rate, lambda a: a >= 0, "`learning_rate` must be >= 0")
+        momentum = check_value(self.momentum, lambda a: (a >= 0) & (a < 1), "`momentum` must be in [0, 1)")
+        command_scale = check_value(self.command_scale, lambda a: a > 0, "`command_scale` must be > 0")
+        output_scale = check_value(self.output_scale, lambda a: a > 0, "`output_scale` must be > 0")
+        return (learning_rate, momentum, command_scale, output_scale, *check_limits(self.u_min, self.u_max))
+
+    def check(self) -> "AdaptiveInverseController":
+        m = error_if_not_finite(self, ("learning_rate", "momentum", "offset", "command_scale", "output_offset",
+                                       "output_scale", "hidden_weights", "hidden_bias", "output_weights",
+                                       "output_bias"))
+        return eqx.tree_at(lambda c: (c.learning_rate, c.momentum, c.command_scale, c.output_scale, c.u_min,
+                                      c.u_max), m, m._checked_settings())
 
     @property
     def params(self) -> tuple[Array, Array, Array, Array]:

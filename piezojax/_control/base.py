@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, PyTree
 
-from .._checks import PiezojaxValueError, check_signal
+from .._checks import PiezojaxValueError, as_parameter_array, check_finite, check_signal, check_value
 from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 
@@ -32,6 +32,12 @@ class AbstractController(eqx.Module):
     def step(self, state: PyTree[Array], reference: Array, measurement: Array) -> tuple[PyTree[Array], Array]:
         """Read $r_k$ and $y_k$; return `(state, u_k)`."""
 
+    @abc.abstractmethod
+    def check(self) -> "AbstractController":
+        """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
+        `eqx.error_if` if traced): `__call__` and `pj.closed_loop` run it, so a parameter replaced after
+        construction (`eqx.tree_at`) is checked too."""
+
     def __call__(self, reference: SignalLike, measurement: SignalLike) -> Signal:
         """The commands $u_k$ for recorded references and feedback signals (same length), from `init()`."""
         dtype = module_float_dtype(self, reference, measurement)
@@ -41,7 +47,7 @@ class AbstractController(eqx.Module):
             raise PiezojaxValueError(
                 f"`reference` and `measurement` must have the same length, got {r.shape} and {y.shape}"
             )
-        c = cast_module(self, dtype)
+        c = cast_module(self, dtype).check()
         return jax.lax.scan(lambda s, ry: c.step(s, ry[0], ry[1]), c.init(), (r, y))[1]
 
 
@@ -93,6 +99,25 @@ def as_time_major(tree: PyTree[ArrayLike] | None, n: int, name: str, dtype) -> P
             raise PiezojaxValueError(
                 f"every leaf of `{name}` must have a leading time axis of length {n}, got {x.shape}"
             )
-        return x
+        return check_finite(x, name)
 
     return jax.tree_util.tree_map(one, tree)
+
+
+def scalar_setting(x: ArrayLike, name: str, *, finite: bool = True, dtype=None) -> Array:
+    """A controller's scalar parameter: a real scalar (a `PiezojaxValueError` naming `name` otherwise), finite (with
+    `finite`) or else not NaN (a command limit may be infinite), of `dtype` (default its own; give the constructor's
+    `param_dtype` of its arguments, so that Python-number defaults follow float32 arguments)."""
+    a = as_parameter_array(x, name, dtype)
+    if a.ndim != 0:
+        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(a.shape)}")
+    if finite:
+        return check_finite(a, name)
+    return check_value(a, lambda v: ~jnp.isnan(v), f"`{name}` must not be NaN")
+
+
+def check_limits(u_min: Array, u_max: Array) -> tuple[Array, Array]:
+    """The command limits, checked: neither NaN, and `u_max` > `u_min`."""
+    u_min = check_value(u_min, lambda v: ~jnp.isnan(v), "`u_min` must not be NaN")
+    u_max = check_value(u_max, lambda v: ~jnp.isnan(v) & (v > u_min), "`u_max` must be greater than `u_min`")
+    return u_min, u_max

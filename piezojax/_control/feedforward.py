@@ -1,11 +1,18 @@
 """Feedforward from a model's inverse, and feedforward plus feedback."""
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from .._checks import PiezojaxValueError, as_parameter_array
+from .._checks import PiezojaxValueError, check_value, error_if_not_finite
 from .._custom_types import AbstractCell
-from .base import AbstractController
+from .._dtypes import param_dtype
+from .base import AbstractController, scalar_setting
+
+
+def _nonzero(x: Array, name: str) -> Array:
+    return check_value(x, lambda a: jnp.isfinite(a) & (a != 0), f"`{name}` must be finite and nonzero")
 
 
 class InverseFeedforward(AbstractController):
@@ -17,8 +24,8 @@ class InverseFeedforward(AbstractController):
       produces it, e.g. `pi.inverse()` of a fitted `pj.PrandtlIshlinskii` $H$ (its inverse is exact and
       rate-independent), or any operator that maps displacement to voltage.
     - `offset`: $u_0$, added to the inverse's output (e.g. a bias voltage the model was fitted around).
-    - `reference_offset`: $r_0$, and `reference_scale`: $g$ — the reference in the inverse's input units
-      (e.g. `reference_scale=1e-6` for a model fitted in µm and a reference in m).
+    - `reference_offset`: $r_0$, and `reference_scale`: $g \ne 0$ — the reference in the inverse's input units
+      (e.g. `reference_scale=1e-6` for a model fitted in µm and a reference in m). All finite scalars.
 
     ```python
     ff = pj.InverseFeedforward(pi.inverse(), offset=100.0, reference_scale=1e-6)
@@ -36,9 +43,15 @@ class InverseFeedforward(AbstractController):
             raise PiezojaxValueError(f"`inverse` must be a pj.AbstractCell (init() and step(state, y)), got "
                                      f"{type(inverse).__name__}")
         self.inverse = inverse
-        self.offset = as_parameter_array(offset, "offset")
-        self.reference_offset = as_parameter_array(reference_offset, "reference_offset")
-        self.reference_scale = as_parameter_array(reference_scale, "reference_scale")
+        dtype = param_dtype(*jax.tree.leaves(inverse), offset, reference_offset, reference_scale)
+        self.offset = scalar_setting(offset, "offset", dtype=dtype)
+        self.reference_offset = scalar_setting(reference_offset, "reference_offset", dtype=dtype)
+        self.reference_scale = _nonzero(scalar_setting(reference_scale, "reference_scale", dtype=dtype),
+                                        "reference_scale")
+
+    def check(self) -> "InverseFeedforward":
+        m = error_if_not_finite(self, ("offset", "reference_offset"))
+        return eqx.tree_at(lambda f: f.reference_scale, m, _nonzero(m.reference_scale, "reference_scale"))
 
     def init(self) -> PyTree[Array]:
         return self.inverse.init()
@@ -63,6 +76,9 @@ class FeedforwardFeedback(AbstractController):
             if not isinstance(c, AbstractController):
                 raise PiezojaxValueError(f"`{name}` must be a pj.AbstractController, got {type(c).__name__}")
         self.feedforward, self.feedback = feedforward, feedback
+
+    def check(self) -> "FeedforwardFeedback":
+        return FeedforwardFeedback(self.feedforward.check(), self.feedback.check())
 
     def init(self):
         return self.feedforward.init(), self.feedback.init()

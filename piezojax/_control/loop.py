@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from .._checks import PiezojaxValueError, check_signal
+from .._checks import PiezojaxValueError, check_signal, check_value
 from .._custom_types import AbstractCell, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 from .adaptive_inverse import AdaptiveInverseController
@@ -94,7 +94,7 @@ def closed_loop(
     held = jnp.broadcast_to(r[-1], (min(preview, r.shape[0]),))
     r_read = r if preview == 0 else jnp.concatenate([r[preview:], held])
     w = as_time_major(noise, r.shape[0], "noise", dtype)
-    ctrl, plant = cast_module(controller, dtype), cast_module(plant, dtype)
+    ctrl, plant = cast_module(controller, dtype).check(), cast_module(plant, dtype)
     obs = None if observer is None else cast_module(observer, dtype)
     read: Callable = _reader(obs, feedback)
 
@@ -127,11 +127,15 @@ def _reader(observer, feedback: str):
 def tracking_error_percent(reference: SignalLike, output: SignalLike) -> Float[Array, ""]:
     r"""Paper 002's eq. (20): the RMS tracking error as a percentage of the reference's range,
 
-    $e_{rms} = \dfrac{\sqrt{\frac{1}{N}\sum_k (r_k - y_k)^2}}{\max_k r_k - \min_k r_k} \times 100\,\%$.
+    $e_{rms} = \dfrac{\sqrt{\frac{1}{N}\sum_k (r_k - y_k)^2}}{\max_k r_k - \min_k r_k} \times 100\,\%$
+
+    (a constant reference, without a range, is refused).
     """
     dtype = module_float_dtype(None, reference, output)
     r = check_signal(reference, "reference", dtype)
     y = check_signal(output, "output", dtype)
     if r.shape != y.shape:
         raise PiezojaxValueError(f"`reference` and `output` must have the same length, got {r.shape} and {y.shape}")
-    return 100 * jnp.sqrt(jnp.mean((r - y) ** 2)) / (jnp.max(r) - jnp.min(r))
+    span = check_value(jnp.max(r) - jnp.min(r), lambda a: a > 0,
+                       "`reference` is constant: eq. (20) divides by its range, which is 0")
+    return 100 * jnp.sqrt(jnp.mean((r - y) ** 2)) / span

@@ -5,10 +5,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from .._checks import PiezojaxValueError, as_parameter_array, check_signal, check_value
+from .._checks import PiezojaxValueError, check_signal, check_value
 from .._custom_types import AbstractCell, Signal, SignalLike
-from .._dtypes import cast_module, matmul, module_float_dtype
+from .._dtypes import cast_module, matmul, module_float_dtype, param_dtype
 from .._parametrisation import setting
+from .base import scalar_setting
 from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
@@ -70,14 +71,15 @@ class NarxNetwork(AbstractCell):
         input_scale: ArrayLike = 1.0,
     ):
         for name, value, least in (("output_lags", output_lags, 0), ("input_lags", input_lags, 1), ("delay", delay, 0)):
-            if not isinstance(value, int) or value < least:
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise PiezojaxValueError(f"`{name}` must be an int >= {least}, got {value!r}")
         self.output_lags, self.input_lags, self.delay = output_lags, input_lags, delay
-        self.output_offset = as_parameter_array(output_offset, "output_offset")
-        self.input_offset = as_parameter_array(input_offset, "input_offset")
-        self.output_scale = check_value(as_parameter_array(output_scale, "output_scale"), lambda s: s > 0,
+        dtype = param_dtype(output_offset, output_scale, input_offset, input_scale)
+        self.output_offset = scalar_setting(output_offset, "output_offset", dtype=dtype)
+        self.input_offset = scalar_setting(input_offset, "input_offset", dtype=dtype)
+        self.output_scale = check_value(scalar_setting(output_scale, "output_scale", dtype=dtype), lambda s: s > 0,
                                         "`output_scale` must be > 0")
-        self.input_scale = check_value(as_parameter_array(input_scale, "input_scale"), lambda s: s > 0,
+        self.input_scale = check_value(scalar_setting(input_scale, "input_scale", dtype=dtype), lambda s: s > 0,
                                        "`input_scale` must be > 0")
         dtype = self.output_scale.dtype
         self.hidden_weights, self.hidden_bias = random_hidden_layer(key, hidden, output_lags + input_lags, dtype)
@@ -144,7 +146,7 @@ class NarxNetwork(AbstractCell):
         xs = jnp.concatenate([((x - self.input_offset) / self.input_scale)[None], xs[:-1]])
         z = jnp.concatenate([ys, xs[self.delay:]])
         yn = forward(self.params, z)[1]
-        ys = jnp.concatenate([yn[None], ys[:-1]])
+        ys = jnp.concatenate([yn[None], ys[:-1]]) if self.output_lags else ys  # n_y = 0: no output lags to shift
         return (ys, xs), self.output_offset + self.output_scale * yn
 
     def simulate(self, x: SignalLike, y0: ArrayLike | None = None) -> Signal:
@@ -171,18 +173,21 @@ def train_narx_online(
     the one-step error $\frac12 (\tilde y_k - F(z_k))^2$ with momentum,
     $\Delta\theta(k) = -\eta\,\nabla_\theta \tfrac12 e_k^2 + \alpha\,\Delta\theta(k-1)$ (the form of eq. 18–19).
 
-    **Arguments:** `network`; the measured input `x` and output `y`; `learning_rate` $\eta$; `momentum` $\alpha$;
-    `epochs`: passes through the record.
+    **Arguments:** `network`; the measured input `x` and output `y`; `learning_rate` $\eta \ge 0$; `momentum`
+    $\alpha \in [0, 1)$ (scalars); `epochs`: passes through the record.
 
     **Returns:** the trained `NarxNetwork`.
     """
-    if not isinstance(epochs, int) or epochs < 1:
+    if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 1:
         raise PiezojaxValueError(f"`epochs` must be a positive int, got {epochs!r}")
     m, (x, y) = network._prepare(x, y)
     dtype = m.output_scale.dtype
     z = m.regressors(x, y)
     target = (y - m.output_offset) / m.output_scale
-    eta, alpha = jnp.asarray(learning_rate, dtype), jnp.asarray(momentum, dtype)
+    eta = check_value(scalar_setting(learning_rate, "learning_rate").astype(dtype), lambda a: a >= 0,
+                      "`learning_rate` must be >= 0")
+    alpha = check_value(scalar_setting(momentum, "momentum").astype(dtype), lambda a: (a >= 0) & (a < 1),
+                        "`momentum` must be in [0, 1)")
     grad = jax.grad(lambda p, zk, tk: 0.5 * (tk - forward(p, zk)[1]) ** 2)
 
     def sample(carry, zt):

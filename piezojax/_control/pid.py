@@ -1,17 +1,12 @@
 """A discrete PID controller with a filtered derivative and back-calculation anti-windup."""
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, as_parameter_array, check_positive, check_value
-from .base import AbstractController
-
-
-def _scalar(x: ArrayLike, name: str) -> Array:
-    a = as_parameter_array(x, name)
-    if a.ndim != 0:
-        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {a.shape}")
-    return a
+from .._checks import check_positive, error_if_not_finite, error_if_not_positive
+from .._dtypes import param_dtype
+from .base import AbstractController, check_limits, scalar_setting
 
 
 class PID(AbstractController):
@@ -29,12 +24,15 @@ class PID(AbstractController):
 
     **Arguments:**
 
-    - `kp`, `ki` [1/s], `kd` [s]: the gains (any sign; units of command per unit of error).
+    - `kp`, `ki` [1/s], `kd` [s]: the gains (any sign; units of command per unit of error), finite.
     - `dt`: the sample period $\Delta$ [s] > 0.
     - `offset`: $u_0$, the command at zero error (e.g. the 100 V bias of paper 002's stage).
     - `u_min`, `u_max`: the command limits (default unbounded).
     - `derivative_filter`: $T_f$ [s] ≥ 0 (default `dt`).
     - `tracking_time`: $T_t$ [s] > 0 (default `dt`: the integrator stops at the limit within a sample).
+
+    The derivative starts at rest at the first measurement it reads (no kick from a plant that does not start at
+    0), unless `init(measurement)` gives the previous one.
 
     ```python
     pid = pj.PID(kp=2e5, ki=4e7, kd=0.0, dt=1e-3, offset=100.0, u_min=-20.0, u_max=200.0)
@@ -65,29 +63,41 @@ class PID(AbstractController):
         derivative_filter: ArrayLike | None = None,
         tracking_time: ArrayLike | None = None,
     ):
-        self.kp, self.ki, self.kd = _scalar(kp, "kp"), _scalar(ki, "ki"), _scalar(kd, "kd")
-        self.dt = check_positive(_scalar(dt, "dt"), "dt")
-        self.offset = _scalar(offset, "offset")
-        self.u_min, self.u_max = _scalar(u_min, "u_min"), _scalar(u_max, "u_max")
-        self.u_max = check_value(self.u_max, lambda a: a > self.u_min, "`u_max` must be greater than `u_min`")
+        dtype = param_dtype(kp, ki, kd, dt, offset, u_min, u_max, derivative_filter, tracking_time)
+        self.kp, self.ki, self.kd = (scalar_setting(x, n, dtype=dtype) for x, n in ((kp, "kp"), (ki, "ki"), (kd, "kd")))
+        self.dt = check_positive(scalar_setting(dt, "dt", dtype=dtype), "dt")
+        self.offset = scalar_setting(offset, "offset", dtype=dtype)
+        self.u_min, self.u_max = check_limits(scalar_setting(u_min, "u_min", finite=False, dtype=dtype),
+                                              scalar_setting(u_max, "u_max", finite=False, dtype=dtype))
         self.derivative_filter = check_positive(
-            _scalar(self.dt if derivative_filter is None else derivative_filter, "derivative_filter"),
+            scalar_setting(self.dt if derivative_filter is None else derivative_filter, "derivative_filter",
+                           dtype=dtype),
             "derivative_filter", allow_zero=True,
         )
         self.tracking_time = check_positive(
-            _scalar(self.dt if tracking_time is None else tracking_time, "tracking_time"), "tracking_time"
+            scalar_setting(self.dt if tracking_time is None else tracking_time, "tracking_time", dtype=dtype),
+            "tracking_time",
         )
 
-    def init(self, measurement: ArrayLike = 0.0) -> Float[Array, "3"]:
-        """The state `[I, y_prev, D]`: integrator empty, derivative at rest at `measurement`."""
-        zero = jnp.zeros((), self.kp.dtype)
-        return jnp.stack([zero, jnp.asarray(measurement, self.kp.dtype), zero])
+    def check(self) -> "PID":
+        m = error_if_not_finite(self, ("kp", "ki", "kd", "offset"))
+        m = error_if_not_positive(m, ("dt", "derivative_filter", "tracking_time"), allow_zero=("derivative_filter",))
+        return eqx.tree_at(lambda p: (p.u_min, p.u_max), m, check_limits(m.u_min, m.u_max))
 
-    def step(self, state: Float[Array, "3"], reference: Array, measurement: Array) -> tuple[Array, Array]:
-        integral, y_prev, deriv = state[0], state[1], state[2]
+    def init(self, measurement: ArrayLike | None = None) -> Float[Array, "4"]:
+        """The state `[I, y_prev, D, started]`: integrator empty, derivative at rest at `measurement` (default: at
+        the first measurement `step` reads)."""
+        zero = jnp.zeros((), self.kp.dtype)
+        if measurement is None:
+            return jnp.stack([zero, zero, zero, zero])
+        return jnp.stack([zero, jnp.asarray(measurement, self.kp.dtype), zero, jnp.ones((), self.kp.dtype)])
+
+    def step(self, state: Float[Array, "4"], reference: Array, measurement: Array) -> tuple[Array, Array]:
+        integral, deriv, started = state[0], state[2], state[3]
+        y_prev = jnp.where(started > 0, state[1], measurement)
         e = reference - measurement
         deriv = (self.derivative_filter * deriv - self.kd * (measurement - y_prev)) / (self.derivative_filter + self.dt)
         v = self.offset + self.kp * e + integral + deriv
         u = jnp.clip(v, self.u_min, self.u_max)
         integral = integral + self.ki * self.dt * e + self.dt / self.tracking_time * (u - v)
-        return jnp.stack([integral, measurement, deriv]), u
+        return jnp.stack([integral, measurement, deriv, jnp.ones_like(started)]), u

@@ -10,6 +10,8 @@ A sampled input is turned into a piecewise-cubic polynomial on a uniform grid of
   component of angular frequency $\omega$ and knot spacing $h$: below 1e-7 for $\omega h < 0.08$).
 """
 
+import math
+
 import diffrax
 import equinox as eqx
 import jax
@@ -135,7 +137,11 @@ class SampledInput(eqx.Module):
         return jnp.clip(k, 0, self.coeffs.shape[0] - 1)
 
     def evaluate(self, t: ArrayLike) -> Array:
-        """The held input at time `t` (scalar, or a vector of channels)."""
+        """The held input at the time `t`, a scalar (the value: a scalar, or a vector of channels); for several times
+        use `jax.vmap(input.evaluate)(times)`."""
+        if jnp.ndim(t) != 0:
+            raise PiezojaxValueError(f"`t` must be a scalar time, got shape {jnp.shape(t)}; for several times use "
+                                     "jax.vmap(input.evaluate)(times)")
         if self.hold == "periodic":
             period = self.knots[-1] - self.knots[0]
             t = self.knots[0] + jnp.mod(t - self.knots[0], period)
@@ -220,8 +226,12 @@ def simulate_ode(
     n = u.shape[0]
     if num_samples is None:
         num_samples = n
-    if not isinstance(num_samples, int) or not 1 <= num_samples <= n:
+    if isinstance(num_samples, bool) or not isinstance(num_samples, int) or not 1 <= num_samples <= n:
         raise PiezojaxValueError(f"`num_samples` must be an int in [1, len(u)] = [1, {n}], got {num_samples!r}")
+    if rtol is not None and (isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 0 < rtol < 1):
+        raise PiezojaxValueError(f"`rtol` must be a number in (0, 1) or None (fixed steps), got {rtol!r}")
+    if atol is not None and (isinstance(atol, bool) or not isinstance(atol, (int, float)) or not 0 <= atol < math.inf):
+        raise PiezojaxValueError(f"`atol` must be a finite number >= 0 or None (= `rtol`), got {atol!r}")
     dtype = common_float_dtype(u, dt)
     u = u.astype(dtype)
     dt = check_step(dt, "dt", dtype)

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_scalar, check_value
+from .._checks import PiezojaxValueError, check_finite, check_scalar, check_value
 from .._custom_types import Signal, SignalLike
 from .._dtypes import common_float_dtype
 from ._input import check_samples, check_step, simulate_ode
@@ -182,6 +182,7 @@ class BoucWenOscillator(eqx.Module):
             state0 = jnp.asarray(state0, dtype)
             if state0.shape != (3,):
                 raise PiezojaxValueError(f"`state0` must have shape (3,), got {tuple(state0.shape)}")
+            state0 = check_finite(state0, "state0")
         if method == "rk4":
             n = u.shape[0]
             if num_samples is None:

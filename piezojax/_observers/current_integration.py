@@ -6,12 +6,16 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError, check_component, check_value
-from .._circuits.base import (
+from .._checks import (
+    PiezojaxValueError,
+    check_component,
     check_positive_param,
     check_scalar_param,
+    check_value,
     error_if_not_finite,
     error_if_not_positive,
+)
+from .._circuits.base import (
     prepare,
     running_integral,
 )

@@ -5,12 +5,14 @@ from typing import ClassVar
 import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import PiezojaxValueError
-from .._circuits.base import (
+from .._checks import (
+    PiezojaxValueError,
     check_positive_param,
     check_scalar_param,
     error_if_not_finite,
     error_if_not_positive,
+)
+from .._circuits.base import (
     prepare,
     running_integral,
 )
