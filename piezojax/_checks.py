@@ -254,17 +254,18 @@ def check_positive(x: Array, name: str, allow_zero: bool = False) -> Array:
     return check_value(x, lambda a: jnp.all(jnp.isfinite(a) & (a > 0)), f"`{name}` must be finite and > 0")
 
 
-def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False) -> Array:
-    """Constructor check of a scalar parameter: a real scalar, finite and > 0 (>= 0 with `allow_zero`)."""
-    x = as_parameter_array(x, name)
+def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False, dtype=None) -> Array:
+    """Constructor check of a scalar parameter: a real scalar, finite and > 0 (>= 0 with `allow_zero`), of `dtype`
+    (default its own; a constructor gives the `param_dtype` of its arguments, so Python numbers follow them)."""
+    x = as_parameter_array(x, name, dtype)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
     return check_positive(x, name, allow_zero)
 
 
-def check_scalar_param(x: ArrayLike, name: str) -> Array:
-    """Constructor check of a signed scalar parameter: a real scalar, finite."""
-    x = as_parameter_array(x, name)
+def check_scalar_param(x: ArrayLike, name: str, dtype=None) -> Array:
+    """Constructor check of a signed scalar parameter: a real scalar, finite, of `dtype` (as `check_positive_param`)."""
+    x = as_parameter_array(x, name, dtype)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
     return check_finite(x, name)

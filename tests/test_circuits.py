@@ -247,3 +247,14 @@ def test_running_integral_keeps_its_parameters_outside_the_sum():
     assert str(jaxpr).count("cumsum[") == 1
     with pytest.raises(pj.PiezojaxValueError, match="`gain` and `bias` must be scalars"):
         running_integral(jnp.asarray(x), dt, gain, jnp.ones(x.size))
+
+
+def test_float32_circuits_and_observers_stay_float32():
+    """Under x64, Python-number defaults (`bias_current`, `gamma`, `crosstalk`, `offset`) follow the float32
+    arguments: a float32 circuit or observer computes in float32 (they had turned it to float64)."""
+    f32 = np.float32
+    v = jnp.linspace(0.0, 1.0, 8, dtype=jnp.float32)
+    tia = pj.TransimpedanceCircuit(f32(1e6), f32(4.2e-9))
+    assert tia(v, f32(1e-3)).dtype == jnp.float32
+    layer = pj.SensorLayerObserver(f32(1.6e-12), f32(104e-12), f32(6.3e6), f32(5e7))
+    assert {leaf.dtype for leaf in jax.tree.leaves(layer)} == {jnp.dtype("float32")}

@@ -1,5 +1,6 @@
 """Paper 001 (Ivan et al. 2009): the piezo charge read by an integrator with a reference capacitor."""
 
+import jax
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import (
@@ -11,6 +12,7 @@ from .._checks import (
 )
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
+from .._dtypes import param_dtype
 from .._hysteresis.base import AbstractHysteresis, change_from_rest
 from .._linear.base import AbstractLinearSystem
 from .base import (
@@ -79,12 +81,16 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         hysteresis: AbstractHysteresis | None = None,
         creep: AbstractCreep | AbstractLinearSystem | None = None,
     ):
-        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance")
-        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance")
-        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance")
-        self.bias_current = check_scalar_param(bias_current, "bias_current")
-        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity")
-        self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True)
+        # Python numbers (defaults included) follow the arrays' dtype
+        dtype = param_dtype(*jax.tree.leaves((integrator_capacitance, reference_capacitance, leakage_resistance,
+                                              bias_current, force_sensitivity, capacitance_p, hysteresis, creep)))
+        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance",
+                                                           dtype=dtype)
+        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance", dtype=dtype)
+        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance", dtype=dtype)
+        self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
+        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity", dtype=dtype)
+        self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True, dtype=dtype)
         self.hysteresis = check_component(hysteresis, AbstractHysteresis, "hysteresis", "op(v)")
         self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")
 

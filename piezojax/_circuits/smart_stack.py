@@ -1,5 +1,6 @@
 """Paper 002 (Chen & Li 2014): a preloaded piezo stack with a sensor layer read by a charge amplifier."""
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -12,6 +13,7 @@ from .._checks import (
     error_if_not_positive,
 )
 from .._custom_types import Signal, SignalLike
+from .._dtypes import param_dtype
 from .._hysteresis.base import AbstractHysteresis
 from .._linear.transfer_function import TransferFunction
 from .base import (
@@ -75,14 +77,17 @@ class SmartStackCircuit(AbstractCircuit):
         crosstalk: ArrayLike = 0.0,
         actuator: AbstractHysteresis | None = None,
     ):
-        self.d33 = check_positive_param(d33, "d33")
-        self.amplifier_capacitance = check_positive_param(amplifier_capacitance, "amplifier_capacitance")
-        self.k_p = check_positive_param(k_p, "k_p")
-        self.k_s = check_positive_param(k_s, "k_s")
-        self.m_e = check_positive_param(m_e, "m_e")
-        self.c_e = check_positive_param(c_e, "c_e", allow_zero=True)
-        self.k_e = check_positive_param(k_e, "k_e")
-        self.crosstalk = check_scalar_param(crosstalk, "crosstalk")
+        # Python numbers (defaults included) follow the arrays' dtype
+        dtype = param_dtype(*jax.tree.leaves((d33, amplifier_capacitance, k_p, k_s, m_e, c_e, k_e, crosstalk,
+                                              actuator)))
+        self.d33 = check_positive_param(d33, "d33", dtype=dtype)
+        self.amplifier_capacitance = check_positive_param(amplifier_capacitance, "amplifier_capacitance", dtype=dtype)
+        self.k_p = check_positive_param(k_p, "k_p", dtype=dtype)
+        self.k_s = check_positive_param(k_s, "k_s", dtype=dtype)
+        self.m_e = check_positive_param(m_e, "m_e", dtype=dtype)
+        self.c_e = check_positive_param(c_e, "c_e", allow_zero=True, dtype=dtype)
+        self.k_e = check_positive_param(k_e, "k_e", dtype=dtype)
+        self.crosstalk = check_scalar_param(crosstalk, "crosstalk", dtype=dtype)
         self.actuator = check_component(actuator, AbstractHysteresis, "actuator", "op(v_a)")
 
     def check(self) -> "SmartStackCircuit":

@@ -1,5 +1,6 @@
 """Paper 000 (Bafumba Liseli et al. 2018): the piezo current read by a transimpedance amplifier."""
 
+import jax
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import (
@@ -12,6 +13,7 @@ from .._checks import (
 )
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
+from .._dtypes import param_dtype
 from .._linear.base import AbstractLinearSystem
 from .base import (
     AbstractCircuit,
@@ -68,10 +70,12 @@ class TransimpedanceCircuit(AbstractCircuit):
         bias_current: ArrayLike = 0.0,
         creep: AbstractCreep | AbstractLinearSystem | None = None,
     ):
-        self.feedback_resistance = check_positive_param(feedback_resistance, "feedback_resistance")
-        self.capacitance = check_positive_param(capacitance, "capacitance")
-        self.gamma = check_positive_param(gamma, "gamma", allow_zero=True)
-        self.bias_current = check_scalar_param(bias_current, "bias_current")
+        # Python numbers (defaults included) follow the arrays' dtype
+        dtype = param_dtype(*jax.tree.leaves((feedback_resistance, capacitance, gamma, bias_current, creep)))
+        self.feedback_resistance = check_positive_param(feedback_resistance, "feedback_resistance", dtype=dtype)
+        self.capacitance = check_positive_param(capacitance, "capacitance", dtype=dtype)
+        self.gamma = check_positive_param(gamma, "gamma", allow_zero=True, dtype=dtype)
+        self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
         self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")
 
     def check(self) -> "TransimpedanceCircuit":

@@ -3,6 +3,7 @@
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -21,6 +22,7 @@ from .._circuits.base import (
 )
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
+from .._dtypes import param_dtype
 from .._hysteresis.base import AbstractHysteresis, change_from_rest
 from .._linear.base import AbstractLinearSystem
 from .._linear.butterworth import butterworth_zoh
@@ -105,23 +107,29 @@ class ForceDisplacementObserver(AbstractObserver):
         offset: ArrayLike = 0.0,
         prehistory: ArrayLike | None = None,
     ):
-        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance")
-        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance")
-        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance")
-        self.bias_current = check_scalar_param(bias_current, "bias_current")
-        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity")
+        # Python numbers (defaults included) follow the arrays' dtype
+        dtype = param_dtype(*jax.tree.leaves((integrator_capacitance, reference_capacitance, leakage_resistance,
+                                              bias_current, force_sensitivity, displacement_coefficient, stiffness,
+                                              capacitance_p, hysteresis, creep, filter_cutoff, offset, prehistory)))
+        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance",
+                                                           dtype=dtype)
+        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance", dtype=dtype)
+        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance", dtype=dtype)
+        self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
+        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity", dtype=dtype)
         self.displacement_coefficient = _check_nonzero(
-            check_scalar_param(displacement_coefficient, "displacement_coefficient")
+            check_scalar_param(displacement_coefficient, "displacement_coefficient", dtype=dtype)
         )
-        self.stiffness = check_positive_param(stiffness, "stiffness")
-        self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True)
+        self.stiffness = check_positive_param(stiffness, "stiffness", dtype=dtype)
+        self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True, dtype=dtype)
         self.hysteresis = check_component(hysteresis, AbstractHysteresis, "hysteresis", "op(v)")
         self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")
-        self.filter_cutoff = None if filter_cutoff is None else check_positive_param(filter_cutoff, "filter_cutoff")
-        self.offset = check_scalar_param(offset, "offset")
+        self.filter_cutoff = None if filter_cutoff is None else check_positive_param(filter_cutoff, "filter_cutoff",
+                                                                                     dtype=dtype)
+        self.offset = check_scalar_param(offset, "offset", dtype=dtype)
         if prehistory is not None and hysteresis is None:
             raise PiezojaxValueError("`prehistory` sets the remanent state of `hysteresis`; the observer has none")
-        self.prehistory = None if prehistory is None else check_scalar_param(prehistory, "prehistory")
+        self.prehistory = None if prehistory is None else check_scalar_param(prehistory, "prehistory", dtype=dtype)
 
     def check(self) -> "ForceDisplacementObserver":
         names = ("integrator_capacitance", "reference_capacitance", "leakage_resistance", "force_sensitivity",

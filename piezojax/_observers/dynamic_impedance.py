@@ -3,6 +3,7 @@
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import (
@@ -17,6 +18,7 @@ from .._circuits.base import (
     running_integral,
 )
 from .._custom_types import Signal, SignalLike
+from .._dtypes import param_dtype
 from .._linear.base import AbstractLinearSystem
 from .base import AbstractObserver, Estimate
 
@@ -74,12 +76,15 @@ class DynamicImpedanceObserver(AbstractObserver):
         *,
         offset: ArrayLike = 0.0,
     ):
-        self.feedback_resistance = check_positive_param(feedback_resistance, "feedback_resistance")
-        self.capacitance = check_positive_param(capacitance, "capacitance")
-        self.gamma = check_positive_param(gamma, "gamma", allow_zero=True)
-        self.bias_current = check_scalar_param(bias_current, "bias_current")
-        self.alpha = check_scalar_param(alpha, "alpha")
-        self.beta = check_scalar_param(beta, "beta")
+        # Python numbers (defaults included) follow the arrays' dtype
+        dtype = param_dtype(*jax.tree.leaves((feedback_resistance, capacitance, gamma, bias_current, alpha, beta,
+                                              dynamics, hold, offset)))
+        self.feedback_resistance = check_positive_param(feedback_resistance, "feedback_resistance", dtype=dtype)
+        self.capacitance = check_positive_param(capacitance, "capacitance", dtype=dtype)
+        self.gamma = check_positive_param(gamma, "gamma", allow_zero=True, dtype=dtype)
+        self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
+        self.alpha = check_scalar_param(alpha, "alpha", dtype=dtype)
+        self.beta = check_scalar_param(beta, "beta", dtype=dtype)
         if not isinstance(dynamics, AbstractLinearSystem):
             raise PiezojaxValueError(
                 f"`dynamics` must be a piezojax linear system (G(s)), got {type(dynamics).__name__}"
@@ -88,7 +93,7 @@ class DynamicImpedanceObserver(AbstractObserver):
         if hold not in ("zoh", "foh"):
             raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         self.hold = hold
-        self.offset = check_scalar_param(offset, "offset")
+        self.offset = check_scalar_param(offset, "offset", dtype=dtype)
 
     def check(self) -> "DynamicImpedanceObserver":
         m = error_if_not_positive(self, ("feedback_resistance", "capacitance", "gamma"), allow_zero=("gamma",))

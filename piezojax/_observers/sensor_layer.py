@@ -4,6 +4,7 @@ from collections.abc import Mapping
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import (
@@ -17,6 +18,7 @@ from .._circuits.base import (
     prepare,
 )
 from .._custom_types import AbstractCell, SignalLike
+from .._dtypes import param_dtype
 from .base import AbstractObserver, Estimate
 
 
@@ -54,12 +56,14 @@ class SensorLayerObserver(AbstractObserver, AbstractCell):
 
     def __init__(self, d33: ArrayLike, amplifier_capacitance: ArrayLike, k_p: ArrayLike, k_s: ArrayLike,
                  crosstalk: ArrayLike = 0.0, *, offset: ArrayLike = 0.0):
-        self.d33 = check_positive_param(d33, "d33")
-        self.amplifier_capacitance = check_positive_param(amplifier_capacitance, "amplifier_capacitance")
-        self.k_p = check_positive_param(k_p, "k_p")
-        self.k_s = check_positive_param(k_s, "k_s")
-        self.crosstalk = check_scalar_param(crosstalk, "crosstalk")
-        self.offset = check_scalar_param(offset, "offset")
+        # Python numbers (defaults included) follow the arrays' dtype
+        dtype = param_dtype(*jax.tree.leaves((d33, amplifier_capacitance, k_p, k_s, crosstalk, offset)))
+        self.d33 = check_positive_param(d33, "d33", dtype=dtype)
+        self.amplifier_capacitance = check_positive_param(amplifier_capacitance, "amplifier_capacitance", dtype=dtype)
+        self.k_p = check_positive_param(k_p, "k_p", dtype=dtype)
+        self.k_s = check_positive_param(k_s, "k_s", dtype=dtype)
+        self.crosstalk = check_scalar_param(crosstalk, "crosstalk", dtype=dtype)
+        self.offset = check_scalar_param(offset, "offset", dtype=dtype)
 
     def check(self) -> "SensorLayerObserver":
         m = error_if_not_positive(self, ("d33", "amplifier_capacitance", "k_p", "k_s"))
