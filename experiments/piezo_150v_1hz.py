@@ -75,8 +75,8 @@ starting from the reparametrised result (`FitResult.params`) of the one before:
 
 Evaluation on the full-rate data: the whole record is predicted from t = 0 (`fitting.predict`), train = t < 7 s
 (also reported without the 30 ms after the jump), test = 7 s ≤ t ≤ 10 s. RMSE in µm and NRMSE = RMSE / (max − min
-of the measured test displacement). Measured on 2 cores (test RMSE; the sensor's noise is ≈ 0.05 µm): PI 0.0578,
-Bouc–Wen 0.0614, Maxwell slip 0.0622 µm in 80–110 s; with `--no-mode` 0.0621, 0.0634, 0.0629 µm in ≈ 65 s.
+of the measured test displacement). Measured on 2 cores (test RMSE; the sensor's noise is ≈ 0.05 µm): PI 0.0579,
+Bouc–Wen 0.0614, Maxwell slip 0.0626 µm in 80–110 s; with `--no-mode` 0.0621, 0.0634, 0.0629 µm in ≈ 65 s.
 
 Run: `python -m experiments.piezo_150v_1hz [--out results/piezo_150v_1hz] [--quick] [--no-mode]`. The output
 folder is written atomically and replaces only an earlier output of this experiment; Ctrl-C stops it with exit
