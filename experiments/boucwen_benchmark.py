@@ -544,7 +544,6 @@ def main(argv=None):
     pj.enable_fast_cpu_scans()
     jax.config.update("jax_enable_x64", True)
     pj.enable_compilation_cache()  # compiled programs kept for the next run ($PIEZOJAX_CACHE_DIR)
-    out = output_folder(args.out, KIND, default=OUT)  # before any long work
     start = time.perf_counter()
 
     if args.make_test is not None:
@@ -553,6 +552,7 @@ def main(argv=None):
               f"noise {args.noise:.2e} m ({out['seconds']:.1f} s)")
         return out
 
+    out = output_folder(args.out, KIND, default=OUT)  # before any long work (--make-test writes only its file)
     test = load_test(args.test) if args.test is not None else None  # a bad file: one line, exit status 2
     data = load_train(args.data)
 

@@ -263,12 +263,28 @@ def check_positive_param(x: ArrayLike, name: str, allow_zero: bool = False, dtyp
     return check_positive(x, name, allow_zero)
 
 
-def check_scalar_param(x: ArrayLike, name: str, dtype=None) -> Array:
-    """Constructor check of a signed scalar parameter: a real scalar, finite, of `dtype` (as `check_positive_param`)."""
+def check_scalar_param(x: ArrayLike, name: str, dtype=None, finite: bool = True) -> Array:
+    """Constructor check of a signed scalar parameter: a real scalar, finite (with `finite`; else only not NaN, e.g. a
+    limit that may be infinite), of `dtype` (as `check_positive_param`)."""
     x = as_parameter_array(x, name, dtype)
     if x.ndim != 0:
         raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(x.shape)}")
-    return check_finite(x, name)
+    if finite:
+        return check_finite(x, name)
+    return check_value(x, lambda a: ~jnp.isnan(a), f"`{name}` must not be NaN")
+
+
+def check_nonzero(x: Array, name: str) -> Array:
+    """`check_value` that `x` is finite and nonzero, naming `name`."""
+    return check_value(x, lambda a: jnp.all(jnp.isfinite(a) & (a != 0)), f"`{name}` must be finite and nonzero")
+
+
+def checked(module):
+    """`module.check()` where its class defines `check` (every piezojax block: parameter checks attached, see
+    `check_value`); a module of the user's own without one as it is. For components held by interface
+    (`AbstractCell`: a loop's observer, a feedforward's inverse), whose type says nothing about checks."""
+    check = getattr(type(module), "check", None)
+    return module.check() if callable(check) else module
 
 
 def error_if_not_positive(module: eqx.Module, names: tuple[str, ...], allow_zero: tuple[str, ...] = ()) -> eqx.Module:

@@ -62,6 +62,10 @@ def test_chen2014_quick_reproduces_the_calibration_and_controls(tmp_path):
     assert errors["20 Hz"]["adaptive inverse"] > errors["1 Hz"]["adaptive inverse"]
     tuning = control["tuning"]
     assert tuning["tuned_error_percent"] < 0.8 * tuning["start_error_percent"]
+    # the tuned gains stay non-negative (unconstrained, the feedforward's PID had gone to kp = -2.7e6: positive
+    # feedback), and the PID alone ends far from its start
+    assert min(control["pid_gains"].values()) >= 0, control["pid_gains"]
+    assert control["pid_gains"]["PID kp"] > 1e5
     # the adaptive loop stays stable period after period; the closed loops pass the triangles' band at unit gain
     assert len(control["adaptive_per_period_1Hz_percent"]) == 6
     assert max(control["adaptive_per_period_1Hz_percent"][1:]) < 1.5  # measured 0.25-0.47 %

@@ -5,11 +5,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from .._checks import PiezojaxValueError, check_signal, check_value, error_if_not_finite
+from .._checks import PiezojaxValueError, check_scalar_param, check_signal, check_value, error_if_not_finite
 from .._dtypes import matmul, module_float_dtype, param_dtype
 from .._parametrisation import setting
-from .base import AbstractController, check_limits, scalar_setting
-from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
+from .base import AbstractController, check_limits
+from .network import check_learning, forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
 class AdaptiveInverseController(AbstractController):
@@ -99,14 +99,14 @@ class AdaptiveInverseController(AbstractController):
                 raise PiezojaxValueError(f"`{name}` must be an int >= {least}, got {value!r}")
         self.measurement_lags, self.reference_lags, self.preview = measurement_lags, reference_lags, preview
         dtype = param_dtype(learning_rate, momentum, offset, command_scale, output_offset, output_scale, u_min, u_max)
-        self.learning_rate = scalar_setting(learning_rate, "learning_rate", dtype=dtype)
-        self.momentum = scalar_setting(momentum, "momentum", dtype=dtype)
-        self.offset = scalar_setting(offset, "offset", dtype=dtype)
-        self.command_scale = scalar_setting(command_scale, "command_scale", dtype=dtype)
-        self.output_offset = scalar_setting(output_offset, "output_offset", dtype=dtype)
-        self.output_scale = scalar_setting(output_scale, "output_scale", dtype=dtype)
-        self.u_min = scalar_setting(u_min, "u_min", finite=False, dtype=dtype)
-        self.u_max = scalar_setting(u_max, "u_max", finite=False, dtype=dtype)
+        self.learning_rate = check_scalar_param(learning_rate, "learning_rate", dtype)
+        self.momentum = check_scalar_param(momentum, "momentum", dtype)
+        self.offset = check_scalar_param(offset, "offset", dtype)
+        self.command_scale = check_scalar_param(command_scale, "command_scale", dtype)
+        self.output_offset = check_scalar_param(output_offset, "output_offset", dtype)
+        self.output_scale = check_scalar_param(output_scale, "output_scale", dtype)
+        self.u_min = check_scalar_param(u_min, "u_min", dtype, finite=False)
+        self.u_max = check_scalar_param(u_max, "u_max", dtype, finite=False)
         checked = self._checked_settings()
         (self.learning_rate, self.momentum, self.command_scale, self.output_scale, self.u_min, self.u_max) = checked
         dtype = self.output_scale.dtype
@@ -117,8 +117,7 @@ class AdaptiveInverseController(AbstractController):
         self.output_bias = jnp.zeros((), dtype)
 
     def _checked_settings(self) -> tuple[Array, ...]:
-        learning_rate = check_value(self.learning_rate, lambda a: a >= 0, "`learning_rate` must be >= 0")
-        momentum = check_value(self.momentum, lambda a: (a >= 0) & (a < 1), "`momentum` must be in [0, 1)")
+        learning_rate, momentum = check_learning(self.learning_rate, self.momentum)
         command_scale = check_value(self.command_scale, lambda a: a > 0, "`command_scale` must be > 0")
         output_scale = check_value(self.output_scale, lambda a: a > 0, "`output_scale` must be > 0")
         return (learning_rate, momentum, command_scale, output_scale, *check_limits(self.u_min, self.u_max))

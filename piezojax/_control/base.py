@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, PyTree
 
-from .._checks import PiezojaxValueError, as_parameter_array, check_finite, check_signal, check_value
+from .._checks import PiezojaxValueError, check_finite, check_signal, check_value
 from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 
@@ -21,7 +21,22 @@ class AbstractController(eqx.Module):
     replays a controller against recorded signals (open loop).
 
     Concrete controllers: `pj.PID`, `pj.InverseFeedforward`, `pj.FeedforwardFeedback`,
-    `pj.AdaptiveInverseController`.
+    `pj.AdaptiveInverseController`. A controller of one's own defines `init`, `step` and `check` (the checks of its
+    settings, run by every loop and replay; one with nothing to check returns `self`):
+
+    ```python
+    class Proportional(pj.AbstractController):
+        k: jax.Array
+
+        def init(self):
+            return ()
+
+        def step(self, state, reference, measurement):
+            return state, self.k * (reference - measurement)
+
+        def check(self):
+            return self
+    ```
     """
 
     @abc.abstractmethod
@@ -34,9 +49,9 @@ class AbstractController(eqx.Module):
 
     @abc.abstractmethod
     def check(self) -> "AbstractController":
-        """Return `self` with its parameter value checks attached (`check_value`: raised now if concrete,
-        `eqx.error_if` if traced): `__call__` and `pj.closed_loop` run it, so a parameter replaced after
-        construction (`eqx.tree_at`) is checked too."""
+        """Return `self` with its parameter value checks attached (raised now if concrete, `eqx.error_if` if
+        traced): `__call__` and `pj.closed_loop` run it, so a parameter replaced after construction (`eqx.tree_at`)
+        is checked too. With nothing to check: `return self`."""
 
     def __call__(self, reference: SignalLike, measurement: SignalLike) -> Signal:
         """The commands $u_k$ for recorded references and feedback signals (same length), from `init()`."""
@@ -102,18 +117,6 @@ def as_time_major(tree: PyTree[ArrayLike] | None, n: int, name: str, dtype) -> P
         return check_finite(x, name)
 
     return jax.tree_util.tree_map(one, tree)
-
-
-def scalar_setting(x: ArrayLike, name: str, *, finite: bool = True, dtype=None) -> Array:
-    """A controller's scalar parameter: a real scalar (a `PiezojaxValueError` naming `name` otherwise), finite (with
-    `finite`) or else not NaN (a command limit may be infinite), of `dtype` (default its own; give the constructor's
-    `param_dtype` of its arguments, so that Python-number defaults follow float32 arguments)."""
-    a = as_parameter_array(x, name, dtype)
-    if a.ndim != 0:
-        raise PiezojaxValueError(f"`{name}` must be a scalar, got shape {tuple(a.shape)}")
-    if finite:
-        return check_finite(a, name)
-    return check_value(a, lambda v: ~jnp.isnan(v), f"`{name}` must not be NaN")
 
 
 def check_limits(u_min: Array, u_max: Array) -> tuple[Array, Array]:

@@ -5,14 +5,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from .._checks import PiezojaxValueError, check_value, error_if_not_finite
+from .._checks import PiezojaxValueError, check_nonzero, check_scalar_param, checked, error_if_not_finite
 from .._custom_types import AbstractCell
 from .._dtypes import param_dtype
-from .base import AbstractController, scalar_setting
-
-
-def _nonzero(x: Array, name: str) -> Array:
-    return check_value(x, lambda a: jnp.isfinite(a) & (a != 0), f"`{name}` must be finite and nonzero")
+from .base import AbstractController
 
 
 class InverseFeedforward(AbstractController):
@@ -44,14 +40,15 @@ class InverseFeedforward(AbstractController):
                                      f"{type(inverse).__name__}")
         self.inverse = inverse
         dtype = param_dtype(*jax.tree.leaves(inverse), offset, reference_offset, reference_scale)
-        self.offset = scalar_setting(offset, "offset", dtype=dtype)
-        self.reference_offset = scalar_setting(reference_offset, "reference_offset", dtype=dtype)
-        self.reference_scale = _nonzero(scalar_setting(reference_scale, "reference_scale", dtype=dtype),
+        self.offset = check_scalar_param(offset, "offset", dtype)
+        self.reference_offset = check_scalar_param(reference_offset, "reference_offset", dtype)
+        self.reference_scale = check_nonzero(check_scalar_param(reference_scale, "reference_scale", dtype),
                                         "reference_scale")
 
     def check(self) -> "InverseFeedforward":
         m = error_if_not_finite(self, ("offset", "reference_offset"))
-        return eqx.tree_at(lambda f: f.reference_scale, m, _nonzero(m.reference_scale, "reference_scale"))
+        return eqx.tree_at(lambda f: (f.inverse, f.reference_scale), m,
+                           (checked(m.inverse), check_nonzero(m.reference_scale, "reference_scale")))
 
     def init(self) -> PyTree[Array]:
         return self.inverse.init()

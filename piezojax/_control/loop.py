@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from .._checks import PiezojaxValueError, check_signal, check_value
+from .._checks import PiezojaxValueError, check_signal, check_value, checked
 from .._custom_types import AbstractCell, SignalLike
 from .._dtypes import cast_module, module_float_dtype
 from .adaptive_inverse import AdaptiveInverseController
@@ -95,7 +95,7 @@ def closed_loop(
     r_read = r if preview == 0 else jnp.concatenate([r[preview:], held])
     w = as_time_major(noise, r.shape[0], "noise", dtype)
     ctrl, plant = cast_module(controller, dtype).check(), cast_module(plant, dtype)
-    obs = None if observer is None else cast_module(observer, dtype)
+    obs = None if observer is None else checked(cast_module(observer, dtype))
     read: Callable = _reader(obs, feedback)
 
     def body(carry, rw):

@@ -5,12 +5,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from .._checks import PiezojaxValueError, check_signal, check_value
+from .._checks import PiezojaxValueError, check_scalar_param, check_signal, check_value
 from .._custom_types import AbstractCell, Signal, SignalLike
 from .._dtypes import cast_module, matmul, module_float_dtype, param_dtype
 from .._parametrisation import setting
-from .base import scalar_setting
-from .network import forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
+from .network import check_learning, forward, lagged, logsig, output_layer_least_squares, random_hidden_layer
 
 
 class NarxNetwork(AbstractCell):
@@ -75,11 +74,11 @@ class NarxNetwork(AbstractCell):
                 raise PiezojaxValueError(f"`{name}` must be an int >= {least}, got {value!r}")
         self.output_lags, self.input_lags, self.delay = output_lags, input_lags, delay
         dtype = param_dtype(output_offset, output_scale, input_offset, input_scale)
-        self.output_offset = scalar_setting(output_offset, "output_offset", dtype=dtype)
-        self.input_offset = scalar_setting(input_offset, "input_offset", dtype=dtype)
-        self.output_scale = check_value(scalar_setting(output_scale, "output_scale", dtype=dtype), lambda s: s > 0,
+        self.output_offset = check_scalar_param(output_offset, "output_offset", dtype)
+        self.input_offset = check_scalar_param(input_offset, "input_offset", dtype)
+        self.output_scale = check_value(check_scalar_param(output_scale, "output_scale", dtype), lambda s: s > 0,
                                         "`output_scale` must be > 0")
-        self.input_scale = check_value(scalar_setting(input_scale, "input_scale", dtype=dtype), lambda s: s > 0,
+        self.input_scale = check_value(check_scalar_param(input_scale, "input_scale", dtype), lambda s: s > 0,
                                        "`input_scale` must be > 0")
         dtype = self.output_scale.dtype
         self.hidden_weights, self.hidden_bias = random_hidden_layer(key, hidden, output_lags + input_lags, dtype)
@@ -184,10 +183,8 @@ def train_narx_online(
     dtype = m.output_scale.dtype
     z = m.regressors(x, y)
     target = (y - m.output_offset) / m.output_scale
-    eta = check_value(scalar_setting(learning_rate, "learning_rate").astype(dtype), lambda a: a >= 0,
-                      "`learning_rate` must be >= 0")
-    alpha = check_value(scalar_setting(momentum, "momentum").astype(dtype), lambda a: (a >= 0) & (a < 1),
-                        "`momentum` must be in [0, 1)")
+    eta, alpha = check_learning(check_scalar_param(learning_rate, "learning_rate", dtype),
+                                check_scalar_param(momentum, "momentum", dtype))
     grad = jax.grad(lambda p, zk, tk: 0.5 * (tk - forward(p, zk)[1]) ** 2)
 
     def sample(carry, zt):

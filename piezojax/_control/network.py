@@ -4,8 +4,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PRNGKeyArray
 
-from .._checks import PiezojaxValueError
+from .._checks import PiezojaxValueError, check_value
 from .._dtypes import matmul
+
+
+def check_learning(learning_rate: Array, momentum: Array) -> tuple[Array, Array]:
+    r"""Online back-propagation's learning rate $\eta \ge 0$ and momentum $\alpha \in [0, 1)$ (eq. 18–19), checked
+    (`check_value`)."""
+    eta = check_value(learning_rate, lambda a: a >= 0, "`learning_rate` must be >= 0")
+    alpha = check_value(momentum, lambda a: (a >= 0) & (a < 1), "`momentum` must be in [0, 1)")
+    return eta, alpha
 
 
 def logsig(z: Array) -> Array:

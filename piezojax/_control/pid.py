@@ -4,9 +4,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._checks import check_positive, error_if_not_finite, error_if_not_positive
+from .._checks import PiezojaxValueError, check_scalar_param, error_if_not_finite, error_if_not_positive
 from .._dtypes import param_dtype
-from .base import AbstractController, check_limits, scalar_setting
+from .base import AbstractController, check_limits
 
 
 class PID(AbstractController):
@@ -64,20 +64,18 @@ class PID(AbstractController):
         tracking_time: ArrayLike | None = None,
     ):
         dtype = param_dtype(kp, ki, kd, dt, offset, u_min, u_max, derivative_filter, tracking_time)
-        self.kp, self.ki, self.kd = (scalar_setting(x, n, dtype=dtype) for x, n in ((kp, "kp"), (ki, "ki"), (kd, "kd")))
-        self.dt = check_positive(scalar_setting(dt, "dt", dtype=dtype), "dt")
-        self.offset = scalar_setting(offset, "offset", dtype=dtype)
-        self.u_min, self.u_max = check_limits(scalar_setting(u_min, "u_min", finite=False, dtype=dtype),
-                                              scalar_setting(u_max, "u_max", finite=False, dtype=dtype))
-        self.derivative_filter = check_positive(
-            scalar_setting(self.dt if derivative_filter is None else derivative_filter, "derivative_filter",
-                           dtype=dtype),
-            "derivative_filter", allow_zero=True,
-        )
-        self.tracking_time = check_positive(
-            scalar_setting(self.dt if tracking_time is None else tracking_time, "tracking_time", dtype=dtype),
-            "tracking_time",
-        )
+        self.kp, self.ki, self.kd = (check_scalar_param(x, n, dtype) for x, n in ((kp, "kp"), (ki, "ki"), (kd, "kd")))
+        self.dt = check_scalar_param(dt, "dt", dtype)
+        self.offset = check_scalar_param(offset, "offset", dtype)
+        self.u_min = check_scalar_param(u_min, "u_min", dtype, finite=False)
+        self.u_max = check_scalar_param(u_max, "u_max", dtype, finite=False)
+        self.derivative_filter = check_scalar_param(self.dt if derivative_filter is None else derivative_filter,
+                                                    "derivative_filter", dtype)
+        self.tracking_time = check_scalar_param(self.dt if tracking_time is None else tracking_time, "tracking_time",
+                                                dtype)
+        checked = self.check()  # the value rules, one place for construction and for every call
+        self.dt, self.derivative_filter = checked.dt, checked.derivative_filter
+        self.tracking_time, self.u_min, self.u_max = checked.tracking_time, checked.u_min, checked.u_max
 
     def check(self) -> "PID":
         m = error_if_not_finite(self, ("kp", "ki", "kd", "offset"))
@@ -93,6 +91,9 @@ class PID(AbstractController):
         return jnp.stack([zero, jnp.asarray(measurement, self.kp.dtype), zero, jnp.ones((), self.kp.dtype)])
 
     def step(self, state: Float[Array, "4"], reference: Array, measurement: Array) -> tuple[Array, Array]:
+        if jnp.shape(state) != (4,):
+            raise PiezojaxValueError(f"`state` must be the PID's state of shape (4,) from `init()`, got shape "
+                                     f"{jnp.shape(state)}")
         integral, deriv, started = state[0], state[2], state[3]
         y_prev = jnp.where(started > 0, state[1], measurement)
         e = reference - measurement

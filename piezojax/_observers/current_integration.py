@@ -10,9 +10,9 @@ from jaxtyping import Array, ArrayLike, Float
 from .._checks import (
     PiezojaxValueError,
     check_component,
+    check_nonzero,
     check_positive_param,
     check_scalar_param,
-    check_value,
     error_if_not_finite,
     error_if_not_positive,
 )
@@ -27,11 +27,6 @@ from .._hysteresis.base import AbstractHysteresis, change_from_rest
 from .._linear.base import AbstractLinearSystem
 from .._linear.butterworth import butterworth_zoh
 from .base import AbstractObserver, Estimate
-
-
-def _check_nonzero(alpha: Array) -> Array:
-    message = "`displacement_coefficient` must be finite and nonzero"
-    return check_value(alpha, lambda a: jnp.isfinite(a) & (a != 0), message)
 
 
 class ForceDisplacementObserver(AbstractObserver):
@@ -117,8 +112,9 @@ class ForceDisplacementObserver(AbstractObserver):
         self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance", dtype=dtype)
         self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
         self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity", dtype=dtype)
-        self.displacement_coefficient = _check_nonzero(
-            check_scalar_param(displacement_coefficient, "displacement_coefficient", dtype=dtype)
+        self.displacement_coefficient = check_nonzero(
+            check_scalar_param(displacement_coefficient, "displacement_coefficient", dtype=dtype),
+            "displacement_coefficient",
         )
         self.stiffness = check_positive_param(stiffness, "stiffness", dtype=dtype)
         self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True, dtype=dtype)
@@ -136,7 +132,8 @@ class ForceDisplacementObserver(AbstractObserver):
                  "stiffness", "capacitance_p") + (("filter_cutoff",) if self.filter_cutoff is not None else ())
         m = error_if_not_positive(self, names, allow_zero=("capacitance_p",))
         m = error_if_not_finite(m, ("bias_current", "offset") + (("prehistory",) if m.prehistory is not None else ()))
-        return eqx.tree_at(lambda o: o.displacement_coefficient, m, _check_nonzero(m.displacement_coefficient))
+        alpha = check_nonzero(m.displacement_coefficient, "displacement_coefficient")
+        return eqx.tree_at(lambda o: o.displacement_coefficient, m, alpha)
 
     def _compensated_charge(self, v: Array, v_out: Array, dt: Array) -> Array:
         leak = running_integral(v, dt, 1 / self.leakage_resistance, self.bias_current)
