@@ -478,6 +478,11 @@ class DynamicImpedanceKind(_ObserverOffset):
         g = config.model_options.get("gamma")
         return 0.1 * config.model_options["capacitance"] if g is None else g
 
+    def missing(self, config):
+        # gamma is fitted from a start of 0.1 C_r, which is no value to simulate with
+        given = config.model_options.get("gamma") is not None
+        return ([] if given else ["[observer] gamma"]) + super().missing(config)
+
     def records(self, config, dataset):
         # the transduced force F_t (at the start's gamma) against the displacement: G's static gain is their chord
         obs = self._observer(config, pj.StableTransferFunction(1.0), self._gamma(config))

@@ -270,6 +270,10 @@ def test_paper_000_dynamic_impedance_observer_is_configured_and_recovered():
     # gamma = 0 given: the paper's static-impedance observer, kept fixed
     static = parse_config(text.replace("beta = 6.9067e7\n", "beta = 6.9067e7\ngamma = 0.0\n"), "p000.toml")
     assert "gamma" not in static.default_free() and float(pj.unwrap(static.build(None)).gamma) == 0.0
+    # a forward simulation needs gamma (and G's gain): the fit starts it at 0.1 C_r, which is no value
+    assert cfg.missing_values() == ["[observer] gamma", "[dynamics] gain"]
+    with pytest.raises(pj.PiezojaxValueError, match=r"missing: .*\[observer\] gamma"):
+        cfg.build(None, require_values=True)
     with pytest.raises(pj.PiezojaxValueError, match=r"\[hysteresis\] is not used by the dynamic impedance model"):
         parse_config(text + '[hysteresis]\nkind = "prandtl_ishlinskii"\n', "p000.toml")
 
