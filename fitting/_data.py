@@ -512,6 +512,8 @@ def _columns_to_experiment(
     label = f"file {src!r}"
     data = {k: v for k, v in data.items() if k != FILE_MARKER}
     renames = parse_columns(columns)
+    if not any(k.isdigit() for k in data):  # named columns: the field positions of a header-less CSV do not apply
+        renames = {k: v for k, v in renames.items() if not k.isdigit()}
     # a file with none of the renamed channels is an input-only file (to predict from): those renames do not apply;
     # a file with some of them must have all (a misspelt name is an error, not a channel silently left out)
     channel_sources = [k for k, v in renames.items() if v in CHANNELS]
@@ -525,13 +527,14 @@ def _columns_to_experiment(
     if clash:
         raise PiezojaxValueError(f"{label}: `columns` renames a column to {clash[0]!r}, which the file has already")
     data = {renames.get(k, k): v for k, v in data.items()}
+    rate_to_check = None
     if sample_rate is not None:
-        if "t" in data:
-            raise PiezojaxValueError(f"{label}: has a 't' column and a sample rate was given; give only one")
         fs = float(sample_rate) if np.ndim(sample_rate) == 0 else math.nan
         if not (math.isfinite(fs) and fs > 0):
             raise PiezojaxValueError(f"`sample_rate` must be a positive finite number of Hz, got {sample_rate!r}")
-        if "v_in" in data:
+        if "t" in data:  # for files without 't'; one with its own times must agree (checked in SI below)
+            rate_to_check = fs
+        elif "v_in" in data:
             data["t"] = np.arange(np.shape(_squeeze_vector(np.asarray(data["v_in"])))[0], dtype=np.float64) / fs
     missing = [c for c in ("t", "v_in") if c not in data]
     if missing:
@@ -569,6 +572,11 @@ def _columns_to_experiment(
         if converted:
             notes.append(f"converted to SI: {', '.join(converted)}")
         raise PiezojaxValueError(f"{e} ({'; '.join(notes)})") from e
+    if rate_to_check is not None and abs(float(exp.dt) * rate_to_check - 1) > 1e-6:
+        raise PiezojaxValueError(
+            f"{label}: its 't' column is sampled at {1 / float(exp.dt):.6g} Hz, but `sample_rate` = "
+            f"{rate_to_check:.6g} Hz was given (for files without 't'); give the file's own rate, or none"
+        )
     if "t" not in scales and sample_rate is None and _looks_like_sample_indices(exp.t):
         t = exp.t
         raise PiezojaxValueError(

@@ -397,8 +397,10 @@ def estimate_noise_std(y: np.ndarray, order: int = 4) -> float:
     ignores. The fourth differences keep slow, large signals out of the estimate where the second do not: on four
     records of a PI + creep + 40 Hz mode at 1 kHz with noise 1e-4 of the range, $k = 2$ overestimated the noise by
     10–100 %, $k = 4$ by at most 5 %; on the plant study's records (noise 0.1–0.5 % of the range) both were within
-    5 %. It measures the sample-to-sample (white) part of the noise: noise correlated over samples comes out lower.
-    0 for a signal of at most `order` samples."""
+    5 %. It measures the sample-to-sample (white) part of the noise: noise correlated over samples comes out lower,
+    and a signal's own content near the Nyquist frequency, which differences do not shrink ($\omega\,dt \approx 1$),
+    counts as noise (a noise-free multisine up to 150 Hz sampled at 750 Hz reads as noisy). 0 for a signal of at most
+    `order` samples."""
     if not isinstance(order, int | np.integer) or isinstance(order, bool) or order < 1:
         raise PiezojaxValueError(f"`order` must be an integer >= 1, got {order!r}")
     k = int(order)

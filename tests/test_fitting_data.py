@@ -682,3 +682,21 @@ def test_atomic_directory_mode(tmp_path):
     with atomic_directory(tmp_path / "run") as d:
         (d / "x").write_text("x")
     assert (tmp_path / "run").stat().st_mode & 0o777 == 0o777 & ~umask  # not mkdtemp's 0700
+
+
+def test_read_settings_of_a_fit_apply_to_the_files_they_fit(tmp_path):
+    """`predict` reads new files the way the fit read its own: the field positions of a header-less CSV do not apply
+    to a file with named columns, and `sample_rate` (for files without 't') is refused only where a file's own 't'
+    disagrees with it (both had refused a file the fit's settings did not concern)."""
+    t = np.arange(50) / 750.0
+    v = np.sin(2 * np.pi * 5 * t)
+    np.savez(tmp_path / "named.npz", t=t, v_in=v, displacement=1e-6 * v)
+    exp = load_experiment(tmp_path / "named.npz", columns={"2": "v_in", "3": "displacement"}, sample_rate=750.0)
+    np.testing.assert_allclose(exp.t, t)
+    np.testing.assert_allclose(exp["displacement"], 1e-6 * v)
+    with pytest.raises(PiezojaxValueError, match=r"sampled at 750 Hz, but `sample_rate` = 1000 Hz"):
+        load_experiment(tmp_path / "named.npz", sample_rate=1000.0)
+    # a header-less CSV still reads its fields by position, and its times from the sample rate
+    np.savetxt(tmp_path / "fields.csv", np.column_stack([v, 1e-6 * v]), delimiter=",")
+    exp = load_experiment(tmp_path / "fields.csv", columns={"1": "v_in", "2": "displacement"}, sample_rate=750.0)
+    np.testing.assert_allclose(exp.t, t, atol=1e-15)
