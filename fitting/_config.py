@@ -435,10 +435,35 @@ class ModelConfig:
         for table in self._block_tables():
             where = self._block_path(table).split(".")
             for attr, reparam in self.kind(table).constraints(self.options(table)).items():
-                model = pj.constrain(model, _getter(where + attr.split(".")), reparam)
+                model = pj.constrain(model, _getter(where + attr.split(".")), _off_the_bound(reparam))
         for attr, reparam in self.model_kind.constraints(self).items():
-            model = pj.constrain(model, _getter([attr]), reparam)
+            model = pj.constrain(model, _getter([attr]), _off_the_bound(reparam))
         return model
+
+
+def _off_the_bound(reparam):
+    """`reparam` (a class), wrapping a value that a fitted model may hold at its bound: a positive parameter whose
+    softplus underflowed to 0, or ordered ones that underflowed onto their neighbour (a re-seeding round refits from
+    such a model, and `from_value` refuses the bound itself) is moved off it by a rounding-size step."""
+    if reparam not in (pj.Positive, pj.OrderedPositive):
+        return reparam
+
+    def factory(value):
+        if isinstance(value, jax.core.Tracer):
+            return reparam.from_value(value)
+        v = np.asarray(value)
+        if not (np.issubdtype(v.dtype, np.floating) and np.all(np.isfinite(v))):
+            return reparam.from_value(value)  # refused there, naming `value`
+        # a step of rounding size at the value's scale (subnormal steps are flushed to zero in XLA's checks)
+        step = np.finfo(v.dtype).eps * max(float(np.max(np.abs(v), initial=0.0)), 1.0)
+        lifted = np.where(v == 0, step, v)  # exactly at the bound only: a negative value is still refused
+        if reparam is pj.OrderedPositive and lifted.ndim == 1:
+            for i in range(1, lifted.size):
+                if lifted[i] == lifted[i - 1]:
+                    lifted[i] = lifted[i - 1] + step
+        return reparam.from_value(jnp.asarray(lifted, v.dtype) if np.any(lifted != v) else value)
+
+    return factory
 
 
 # candidate thresholds scored when a freed play is placed where the residual needs it: at most RESEED_GRID, fewer on

@@ -295,3 +295,18 @@ def test_paper_002_sensor_layer_observer_is_configured_and_recovered():
                                [1.6e-12, 5e7, -3e-4], rtol=1e-6)
     with pytest.raises(pj.PiezojaxValueError, match=r"\[observer\]: missing key\(s\) k_p, k_s"):
         parse_config('[observer]\nkind = "sensor_layer"\nd33 = 2e-12\namplifier_capacitance = 104e-12\n', "p.toml")
+
+
+def test_a_fitted_value_at_its_bound_can_be_constrained_again():
+    """A fitted play threshold whose softplus underflowed to exactly 0 (a re-seeding round refits from such a model)
+    is moved off the bound by a rounding-size step; a value below the bound is still refused."""
+    from fitting._config import _off_the_bound
+
+    wrapped = _off_the_bound(pj.OrderedPositive)(jnp.asarray([0.0, 0.0, 5.0]))
+    value = np.asarray(wrapped.unwrap())
+    assert value[0] > 0 and np.all(np.diff(value) > 0) and value[2] == pytest.approx(5.0, rel=1e-12)
+    assert float(_off_the_bound(pj.Positive)(jnp.asarray(0.0)).unwrap()) > 0
+    with pytest.raises(pj.PiezojaxValueError, match="`value`"):
+        _off_the_bound(pj.Positive)(jnp.asarray([-1.0]))
+    with pytest.raises(pj.PiezojaxValueError, match="strictly ascending"):
+        _off_the_bound(pj.OrderedPositive)(jnp.asarray([2.0, 1.0]))
