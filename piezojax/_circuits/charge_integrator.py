@@ -22,6 +22,17 @@ from .base import (
 )
 
 
+def integrator_constants(integrator_capacitance, reference_capacitance, leakage_resistance, bias_current,
+                         force_sensitivity, dtype) -> tuple[Array, ...]:
+    """Paper 001's charge-integrator constants $C$, $C_R$, $R_{FP}$, the bias current and $\beta$, checked (positive;
+    the bias current finite) in `dtype`: the circuit and its observer (`pj.ForceDisplacementObserver`) share them."""
+    return (check_positive_param(integrator_capacitance, "integrator_capacitance", dtype=dtype),
+            check_positive_param(reference_capacitance, "reference_capacitance", dtype=dtype),
+            check_positive_param(leakage_resistance, "leakage_resistance", dtype=dtype),
+            check_scalar_param(bias_current, "bias_current", dtype=dtype),
+            check_positive_param(force_sensitivity, "force_sensitivity", dtype=dtype))
+
+
 class ChargeIntegratorCircuit(AbstractCircuit):
     r"""Charge integrator with reference capacitor, leakage and bias current (paper 001, eq. 1, 3, 4).
 
@@ -84,12 +95,9 @@ class ChargeIntegratorCircuit(AbstractCircuit):
         # Python numbers (defaults included) follow the arrays' dtype
         dtype = param_dtype(*jax.tree.leaves((integrator_capacitance, reference_capacitance, leakage_resistance,
                                               bias_current, force_sensitivity, capacitance_p, hysteresis, creep)))
-        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance",
-                                                           dtype=dtype)
-        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance", dtype=dtype)
-        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance", dtype=dtype)
-        self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
-        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity", dtype=dtype)
+        (self.integrator_capacitance, self.reference_capacitance, self.leakage_resistance, self.bias_current,
+         self.force_sensitivity) = integrator_constants(integrator_capacitance, reference_capacitance,
+                                                        leakage_resistance, bias_current, force_sensitivity, dtype)
         self.capacitance_p = check_positive_param(capacitance_p, "capacitance_p", allow_zero=True, dtype=dtype)
         self.hysteresis = check_component(hysteresis, AbstractHysteresis, "hysteresis", "op(v)")
         self.creep = check_component(creep, (AbstractCreep, AbstractLinearSystem), "creep", "creep(v, dt)")

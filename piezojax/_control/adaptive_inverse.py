@@ -109,7 +109,6 @@ class AdaptiveInverseController(AbstractController):
         self.u_max = check_scalar_param(u_max, "u_max", dtype, finite=False)
         checked = self._checked_settings()
         (self.learning_rate, self.momentum, self.command_scale, self.output_scale, self.u_min, self.u_max) = checked
-        dtype = self.output_scale.dtype
         self.hidden_weights, self.hidden_bias = random_hidden_layer(
             key, hidden, measurement_lags + reference_lags, dtype
         )

@@ -20,6 +20,7 @@ from .._circuits.base import (
     prepare,
     running_integral,
 )
+from .._circuits.charge_integrator import integrator_constants
 from .._creep.base import AbstractCreep
 from .._custom_types import Signal, SignalLike
 from .._dtypes import param_dtype
@@ -106,12 +107,9 @@ class ForceDisplacementObserver(AbstractObserver):
         dtype = param_dtype(*jax.tree.leaves((integrator_capacitance, reference_capacitance, leakage_resistance,
                                               bias_current, force_sensitivity, displacement_coefficient, stiffness,
                                               capacitance_p, hysteresis, creep, filter_cutoff, offset, prehistory)))
-        self.integrator_capacitance = check_positive_param(integrator_capacitance, "integrator_capacitance",
-                                                           dtype=dtype)
-        self.reference_capacitance = check_positive_param(reference_capacitance, "reference_capacitance", dtype=dtype)
-        self.leakage_resistance = check_positive_param(leakage_resistance, "leakage_resistance", dtype=dtype)
-        self.bias_current = check_scalar_param(bias_current, "bias_current", dtype=dtype)
-        self.force_sensitivity = check_positive_param(force_sensitivity, "force_sensitivity", dtype=dtype)
+        (self.integrator_capacitance, self.reference_capacitance, self.leakage_resistance, self.bias_current,
+         self.force_sensitivity) = integrator_constants(integrator_capacitance, reference_capacitance,
+                                                        leakage_resistance, bias_current, force_sensitivity, dtype)
         self.displacement_coefficient = check_nonzero(
             check_scalar_param(displacement_coefficient, "displacement_coefficient", dtype=dtype),
             "displacement_coefficient",
