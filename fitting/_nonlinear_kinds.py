@@ -19,6 +19,7 @@ import scipy  # submodules (signal, optimize, linalg) load on first use: importi
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
+from piezojax._hysteresis.initialise import nnls_gram, row_subset
 
 from ._initialise import MAX_ROWS, dynamics_candidates, filter_pairs
 from ._kinds import MAX_ELEMENTS, MAX_SUBSTEPS, TINY, chord, f64
@@ -29,14 +30,21 @@ MAX_COUPLING_DEGREE = 4
 
 
 def _resonance(dataset, output: str) -> tuple[float, float, float]:
-    r"""`(omega, zeta, gain)` of the second-order response from `v_in` to `output`: each candidate of
-    `fitting.cold_start_actuator`'s resonance estimate (ARX on the raw and high-passed records, the spectral peak),
-    with the static gain by least squares through the DC-normalised filter; the candidate with the smallest residual.
-    Raises `PiezojaxValueError` when no experiment has the output."""
+    r"""`(omega, zeta, gain)` of the second-order response from `v_in` to `output` (`_resonance_of`). Raises
+    `PiezojaxValueError` when no experiment has the output."""
     recs = [(np.asarray(e.v_in, float), np.asarray(e[output], float), e.dt) for e in dataset if e.has(output)]
     if not recs:
         raise PiezojaxValueError(f"data-driven initial values need data files with a {output!r} column (or give "
                                  "every parameter value explicitly in the configuration)")
+    return _resonance_of(recs)
+
+
+def _resonance_of(recs) -> tuple[float, float, float]:
+    r"""`(omega, zeta, gain)` of a second-order response from the `(input, output, dt)` records (those of the
+    smallest step): each candidate of `fitting.cold_start_actuator`'s resonance estimate (ARX on the raw and
+    high-passed records, the spectral peak), with the static gain by least squares through the DC-normalised
+    filter; the candidate with the smallest residual. Without a candidate, a well-damped mode at a fifth of the
+    Nyquist frequency."""
     dt = min(r[2] for r in recs)
     recs = [r for r in recs if r[2] == dt]
     best = None
@@ -192,6 +200,81 @@ def _stop(widths, v):
     return pj.StopOperator(widths)(v)
 
 
+def _electromechanical_from_charge(recs, m: float, n: int, capacitance: float | None = None) -> dict | None:
+    r"""Start of the electromechanical model from records `(v_in, displacement, charge, dt)` that measure both
+    outputs (those of the smallest step); `None` where it finds no physical model ($C \le 0$ or $k \le 0$).
+    A given `capacitance` replaces the estimate of $C$ in $T$ and $k$.
+
+    With $V_p = (q - Tx)/C$ the mechanics read $m\ddot x + b\dot x + (k + T^2/C)x = (T/C)q$: displacement
+    follows the measured charge through a linear resonance, free of the hysteresis (which acts between $V_{in}$
+    and $q$), so `_resonance_of` on $(q, x)$ gives $\omega_q^2 = (k + T^2/C)/m$, $\zeta_q$ and the gain
+    $g = (T/C)/(m\omega_q^2)$. Then $V_{in} = V_p + V_H(q)$ is, exactly and at every sample,
+    $V_{in} + (T/C)x = q/C + \sum_j S_{\rho_j}[q]/C_j$: element $j$ (`clip(s + dq/C_j, ±v_j)`) is a stop operator of
+    the charge of width $\rho_j = C_j v_j$, scaled by $1/C_j$. For given widths, $1/C$ and $1/C_j$ are a
+    non-negative least squares (with a free offset); the widths start at the `n` heaviest of a geometric grid
+    (0.5–80 % of $\max|q|$, four per element) or spread geometrically over three ranges, each start is refined by
+    `scipy.optimize.least_squares` on their logarithms (the coefficients projected out, the widths bounded by
+    $\max|q|$), and the smallest residual is kept. Measured on a numpy plant (four elements, 0.1 % noise): the
+    voltage-driven start had left the fit "converged" at 13.5× the charge noise; this one starts it at 1.3× the
+    fitted cost, and the fit reaches the noise (0.98–1.03×) in 30 steps."""
+    qx = [(q, x, dt) for _, x, q, dt in recs]
+    omega, zeta, g = _resonance_of(qx)
+    k_q = m * omega**2
+    alpha = g * k_q  # T / C
+    q_all = [q for _, _, q, _ in recs]
+    rows = row_subset([q.size for q in q_all], MAX_ROWS)
+
+    def design(widths):
+        return np.concatenate([np.column_stack([q, _stops(q, widths) if n else np.zeros((q.size, 0)),
+                                                np.ones_like(q), -np.ones_like(q)])[keep]
+                               for q, keep in zip(q_all, rows)])
+
+    y = np.concatenate([(v + alpha * x)[keep] for (v, x, _, _), keep in zip(recs, rows)])
+
+    def coefficients(log_widths):
+        a = design(np.exp(log_widths))
+        return a, nnls_gram(a, y)
+
+    def residual(log_widths):
+        a, c = coefficients(log_widths)
+        return a @ c - y
+
+    widths = np.zeros(0)
+    top = float(max(np.max(np.abs(q)) for q in q_all))
+    if not (np.isfinite(alpha) and alpha != 0 and top > 0):
+        return None
+    if n:
+        grid = top * np.geomspace(0.005, 0.8, 4 * n)
+        _, c = coefficients(np.log(grid))
+        # several starts (the static fit has local minima: measured, a spread start found the truth's basin where
+        # the grid's heaviest widths left one element dead); the smallest residual is kept
+        starts = [np.sort(grid[np.argsort(-c[1 : 1 + grid.size], kind="stable")[:n]])] + [
+            top * np.geomspace(lo, hi, n) for lo, hi in ((0.01, 0.8), (0.02, 0.5), (0.05, 0.3))]
+        best = None
+        for w0 in starts:
+            # bounded: a stop wider than the charge's range is the charge itself, collinear with the 1/C column
+            fit = scipy.optimize.least_squares(residual, np.log(w0), diff_step=1e-3, max_nfev=50 * n,
+                                               bounds=(np.log(1e-4 * top), np.log(top)))
+            cost = float(np.sum(fit.fun**2))
+            if np.all(np.isfinite(fit.x)) and np.isfinite(cost) and (best is None or cost < best[0]):
+                best = (cost, np.sort(np.exp(fit.x)))
+        if best is not None:
+            widths = best[1]
+        else:
+            widths = starts[0]
+    _, c = coefficients(np.log(widths))
+    if not c[0] > 0:
+        return None
+    cap = 1.0 / c[0] if capacitance is None else capacitance
+    t = alpha * cap
+    k = k_q - alpha * t
+    if not (np.isfinite(k) and k > 0 and np.isfinite(t)):
+        return None
+    inv = np.maximum(c[1 : 1 + n], 1e-3 * max(float(np.max(c[1 : 1 + n], initial=0.0)), c[0]))  # no dead element
+    return {"b": 2 * zeta * omega * m, "k": k, "capacitance": cap, "t_em": t,
+            "element_capacitances": 1.0 / inv, "breakaway_voltages": widths * inv}
+
+
 class ElectromechanicalKind(ModelKind):
     r"""`pj.ElectromechanicalActuator` (`[model] kind = "electromechanical"`, paper 003): $V_{in} = V_H + V_p$,
     $q = C V_p + T_{em}x$, $m\ddot x + b\dot x + kx = T_{em}V_p$, $V_H$ a Maxwell slip of $q$. Predicts
@@ -202,13 +285,16 @@ class ElectromechanicalKind(ModelKind):
     (`"linear"` or `"zoh"`) and `substeps` (fixed Tsit5 steps per sample, default 8; explicit steps need
     $h(\sqrt{k/m} + b/m) \le 3$).
 
-    Start: to first order the charge follows the voltage, $dq \approx C_e\,dV_p$ with $C_e = C + T^2/k$, so
+    Start: from records that measure the charge as well, `_electromechanical_from_charge` (the mechanics from the
+    charge-to-displacement resonance, which the hysteresis does not touch, then the elements from the exact
+    relation $V_{in} + (T/C)x = q/C + V_H(q)$). Otherwise, or where that finds no physical model: to first order
+    the charge follows the voltage, $dq \approx C_e\,dV_p$ with $C_e = C + T^2/k$, so
     element $j$ is $a_j S_{\rho_j}[V_{in}]$ in volts (a stop operator, $a_j = C_e/C_j$, $\rho_j = v_j/a_j$) and
     $x \approx \frac{T}{k} F(s)\bigl[V_{in} - \sum_j a_j S_{\rho_j}[V_{in}]\bigr]$, $F$ the DC-normalised resonance:
     linear in $(T/k, Ta_j/k) \ge 0$ for each candidate resonance of `fitting.cold_start_actuator`'s estimate,
     solved by non-negative least squares on widths $\rho_j$ from 0.005 to 0.8 $\max|V_{in}|$ (four per element;
     the `elements` widths with the largest weights are kept and solved again); the candidate with the smallest
-    residual gives $k = m\omega^2$, $b = 2\zeta\omega m$, $T$ and the elements. With the charge measured,
+    residual gives $k = m\omega^2$, $b = 2\zeta\omega m$, $T$ and the elements; with the charge measured,
     $C$ is the slope of $q - Tx$ against $V_p$. Fitted by default: `b`, `k`, `t_em`, the elements, and `capacitance`
     when the charge is a target."""
 
@@ -262,6 +348,14 @@ class ElectromechanicalKind(ModelKind):
         o = config.model_options
         if data is None or all(o[k] is not None for k in self.missing_keys(o)):
             return self._placeholder(o)
+        n = o["elements"]
+        both = [(np.asarray(e.v_in, float), np.asarray(e["displacement"], float), np.asarray(e["charge"], float),
+                 e.dt) for e in data.dataset if e.has("displacement") and e.has("charge")]
+        if both:
+            dt = min(r[3] for r in both)
+            start = _electromechanical_from_charge([r for r in both if r[3] == dt], o["m"], n, o["capacitance"])
+            if start is not None:
+                return start | {"t_em": np.r_[start["t_em"], np.zeros(o["degree"])]}
         recs = [(np.asarray(e.v_in, float), np.asarray(e["displacement"], float), e.dt)
                 for e in data.dataset if e.has("displacement")]
         if not recs:
@@ -271,7 +365,6 @@ class ElectromechanicalKind(ModelKind):
         recs = [r for r in recs if r[2] == dt]
         v = np.concatenate([r[0] for r in recs])
         x = np.concatenate([r[1] for r in recs])
-        n = o["elements"]
         # candidate element widths from 0.5 % to 80 % of the largest voltage (geometric: narrow elements shape the
         # reversals), four per element; the n that carry the most weight are kept
         grid = float(np.max(np.abs(v))) * np.geomspace(0.005, 0.8, 4 * n) if n else np.zeros(0)

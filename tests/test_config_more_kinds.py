@@ -132,8 +132,9 @@ def test_bouc_wen_oscillator_kind_through_the_command_line(tmp_path):
 
 
 def test_electromechanical_kind_recovers_the_mechanics_from_displacement_and_charge():
-    """Paper 003's model from its data-driven start: stiffness, coupling and capacitance within a few per cent,
-    displacement and charge fitted to about the noise."""
+    """Paper 003's model from its data-driven start: the start (mechanics from the charge-driven resonance, elements
+    from the exact relation between v_in, charge and displacement) has stiffness, coupling and capacitance within
+    a few per cent; the fit recovers every parameter, the elements included, and reaches the noise."""
     fs, n = 1e4, 2000
     t = np.arange(n) / fs
     u = 50 * np.sin(2 * np.pi * 10 * t) * np.exp(-5 * t) + 20 * (t > 0.1) - 35 * (t > 0.15)
@@ -151,12 +152,96 @@ def test_electromechanical_kind_recovers_the_mechanics_from_displacement_and_cha
     assert cfg.outputs == ("displacement", "charge")
     assert cfg.fit_free(("displacement",)) == ["b", "k", "t_em", "element_capacitances", "breakaway_voltages"]
     start = pj.unwrap(cfg.build(ds))
-    assert 0.5e5 < float(start.k) < 2e5 and 0.25e-6 < float(start.capacitance) < 4e-6  # within a few times
+    # measured: 0.5 %, 0.3 % and 0.05 % off (the start from the voltage alone had been within a few times)
+    np.testing.assert_allclose([float(start.k), float(start.t_em[0]), float(start.capacitance)], [1e5, 0.5, 1e-6],
+                               rtol=0.03)
     res = _fit(cfg, ds, 120)
     m = pj.unwrap(res.model)
-    np.testing.assert_allclose([float(m.k), float(m.t_em[0]), float(m.capacitance)], [1e5, 0.5, 1e-6], rtol=0.06)
-    assert _rmse(res, cfg, exp) < 2.5 * nx
-    assert _rmse(res, cfg, exp, "charge") < 2.5 * nq
+    np.testing.assert_allclose([float(m.k), float(m.t_em[0]), float(m.capacitance)], [1e5, 0.5, 1e-6], rtol=0.005)
+    order = np.argsort(np.asarray(m.breakaway_voltages))
+    np.testing.assert_allclose(np.asarray(m.breakaway_voltages)[order], np.arange(1.0, 5.0), rtol=0.05)
+    np.testing.assert_allclose(np.asarray(m.element_capacitances)[order], 2e-6, rtol=0.05)
+    assert _rmse(res, cfg, exp) < 1.1 * nx  # measured 1.00 and 1.00 (the voltage start: up to 2.5)
+    assert _rmse(res, cfg, exp, "charge") < 1.1 * nq
+
+
+def _em_numpy_plant(v, fs, substeps=8):
+    """Paper 003's model written without piezojax: $V_{in} = V_H + V_p$, $q = CV_p + Tx$, $m\\ddot x + b\\dot x +
+    kx = TV_p$, $V_H = \\sum_i \\mathrm{clip}(s_i + (q - q_0)/C_i, \\pm v_i)$. RK4 on $(x, \\dot x)$ with $V_{in}$
+    linear between samples; at every stage the charge solves $q + C V_H(q) = CV_{in} + Tx$ exactly (piecewise
+    linear and increasing in $q$: bracketed between its breakpoints); the element states move at each substep's
+    end. Returns `(x, q)`."""
+    m, b, k, c, t_em = 0.01, 5.0, 1e5, 1e-6, 0.5
+    ci, vi = np.array([4e-6, 3e-6, 2e-6, 1.5e-6]), np.array([1.0, 2.5, 4.5, 7.0])
+
+    def charge(s, q0, rhs):  # g(d) = d + C sum_i clip(s_i + d/C_i) - (rhs - q0), increasing in d
+        bps = np.sort(np.concatenate([ci * (vi - s), -ci * (vi + s)]))
+        bps = np.concatenate([[bps[0] - 1.0], bps, [bps[-1] + 1.0]])
+        g = bps + c * np.sum(np.clip(s + bps[:, None] / ci, -vi, vi), axis=1) - (rhs - q0)
+        i = min(max(int(np.searchsorted(g, 0.0)), 1), bps.size - 1)
+        d = bps[i - 1] - g[i - 1] * (bps[i] - bps[i - 1]) / (g[i] - g[i - 1])
+        return d, np.sum(np.clip(s + d / ci, -vi, vi))
+
+    h = 1 / fs / substeps
+    x, q = np.zeros(v.size), np.zeros(v.size)
+    state, s, q0 = np.zeros(2), np.zeros(4), 0.0
+    for j in range(1, v.size):
+        for i in range(substeps):
+            def f(z, a):
+                volts = v[j - 1] + a * (v[j] - v[j - 1])
+                vp = volts - charge(s, q0, c * volts + t_em * z[0])[1]
+                return np.array([z[1], (t_em * vp - b * z[1] - k * z[0]) / m])
+
+            a0, a1, a2 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
+            k1 = f(state, a0)
+            k2 = f(state + h / 2 * k1, a1)
+            k3 = f(state + h / 2 * k2, a1)
+            k4 = f(state + h * k3, a2)
+            state = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            volts = v[j - 1] + a2 * (v[j] - v[j - 1])
+            d, _ = charge(s, q0, c * volts + t_em * state[0])
+            s, q0 = np.clip(s + d / ci, -vi, vi), q0 + d
+        x[j], q[j] = state[0], q0
+    return x, q
+
+
+def test_electromechanical_command_line_on_an_independent_plant(tmp_path):
+    """The electromechanical kind through `piezojax fit` and `predict` on records of a numpy plant (no piezojax
+    code), displacement in um and charge in uC: training and an unseen record at the noise, the mechanics within
+    three standard errors of the truth. Its earlier start (from the voltage alone) had ended "converged" at 13.5x
+    the charge noise on this plant."""
+    import json
+
+    from fitting.cli import main
+
+    fs, n = 1e4, 1200
+    t = np.arange(n) / fs
+    drives = {"tri": 50 * np.minimum((t * 15) % 1.0, 1 - (t * 15) % 1.0) * 2 * np.minimum(1, t / 0.05)
+              - 10 * np.sin(2 * np.pi * 3 * t) ** 2,
+              "decay": 30 * (1 - np.cos(2 * np.pi * 20 * t)) * np.exp(-3 * t)
+              + 10 * np.sin(2 * np.pi * 7 * t) * (1 - np.exp(-30 * t)),
+              "sine": 35 * np.sin(2 * np.pi * 12 * t) * np.minimum(1, t / 0.1)
+              + 5 * np.sin(2 * np.pi * 45 * t) * (1 - np.exp(-20 * t))}
+    rng = np.random.default_rng(3)
+    nx, nq = 0.2e-6, 0.03e-6
+    for name, v in drives.items():
+        x, q = _em_numpy_plant(v, fs)
+        cols = [t, v, 1e6 * (x + nx * rng.standard_normal(n)), 1e6 * (q + nq * rng.standard_normal(n))]
+        np.savetxt(tmp_path / f"{name}.csv", np.column_stack(cols), delimiter=",",
+                   header="t,v_in,displacement,charge", comments="")
+    (tmp_path / "em.toml").write_text('[model]\nkind = "electromechanical"\nm = 0.01\n'
+                                      '[data]\nunits = {displacement = "um", charge = "uC"}\n')
+    assert main(["fit", str(tmp_path / "em.toml"), str(tmp_path / "tri.csv"), str(tmp_path / "decay.csv"),
+                 "--out", str(tmp_path / "fit"), "--quiet", "--no-figures"]) == 0
+    result = json.loads((tmp_path / "fit" / "result.json").read_text())
+    assert result["success"]
+    for key, truth in (("k", 1e5), ("capacitance", 1e-6), ("t_em[0]", 0.5)):
+        p = result["parameters"][key]
+        assert p["std_error_status"] == "finite" and abs(p["value"] - truth) < 3 * p["std_error"], (key, p)
+    assert main(["predict", str(tmp_path / "fit"), str(tmp_path / "sine.csv"), "--out", str(tmp_path / "pred")]) == 0
+    metrics = json.loads((tmp_path / "pred" / "metrics.json").read_text())["metrics"]["sine"]
+    assert metrics["displacement"]["rmse"] < 1.15 * nx  # in SI
+    assert metrics["charge"]["rmse"] < 1.15 * nq
 
 
 def test_model_kind_options_are_checked():
