@@ -858,7 +858,8 @@ def read_file_marker(path: str | os.PathLike) -> str | None:
 
 
 def save_experiment(
-    exp: Experiment, path: str | os.PathLike, *, group: str | None = None, marker: str | None = None
+    exp: Experiment, path: str | os.PathLike, *, group: str | None = None, marker: str | None = None,
+    units: Mapping[str, str] | None = None,
 ) -> Path:
     """Write `exp` to a data file (format by suffix, as in `load_experiment`), atomically.
 
@@ -872,6 +873,8 @@ def save_experiment(
     - `group`: for HDF5, write the datasets into this group instead of the root.
     - `marker`: the piezojax command writing the file (e.g. `"simulate"`), recorded in it (see `FILE_MARKER`) so
       that a later `--overwrite` can tell its own output from a user's data.
+    - `units`: labels replacing the SI units of `UNITS` for some columns (CSV header, HDF5 `units` attributes),
+      e.g. `{"v_in": "N"}` for a force-driven model's input. The values are written as they are.
 
     **Returns:**
 
@@ -889,8 +892,14 @@ def save_experiment(
     if marker is not None and not re.fullmatch(r"\w+", marker):
         raise PiezojaxValueError(f"`marker` must be a word, got {marker!r}")
     extra = {} if marker is None else {FILE_MARKER: np.array(marker)}
+    labels = dict(UNITS)
+    for k, u in dict(units or {}).items():
+        if k not in cols or not isinstance(u, str) or not re.fullmatch(r"[\w/.*^ -]+", u):
+            raise PiezojaxValueError(f"`units`: {k!r} must be one of the experiment's columns {list(cols)} with a unit "
+                                     f"name, got {u!r}")
+        labels[k] = u
     if suffix == ".csv":
-        units = ", ".join(f"{k} [{UNITS[k]}]" for k in cols)
+        units = ", ".join(f"{k} [{labels[k]}]" for k in cols)
         written = "experiment" if marker is None else f"{marker} output: experiment"
         head = f"# piezojax {written} {exp.name!r}; units: {units}\n" + ",".join(cols) + "\n"
         buf = io.StringIO()
@@ -915,7 +924,7 @@ def save_experiment(
             g = f if group is None else f.create_group(group)
             for k, v in cols.items():
                 ds = g.create_dataset(k, data=v)
-                ds.attrs["units"] = UNITS[k]
+                ds.attrs["units"] = labels[k]
     return p.absolute()
 
 

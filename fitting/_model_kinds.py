@@ -33,6 +33,8 @@ class ModelKind:
     - `structures`: the creep structures it supports.
     - `scale_in_dynamics`: without hysteresis, the dynamics' gain carries the scale from volts to the output.
     - `cold_start`: the model is a `pj.Actuator`, so `fitting.cold_start_actuator` applies to it.
+    - `input_unit`: the SI unit of what the model reads from `v_in` (a voltage, or the force of a force-driven
+      model), for the labels of the files the command line writes.
     """
 
     table: ClassVar[str | None] = "observer"
@@ -43,6 +45,7 @@ class ModelKind:
     structures: ClassVar[tuple[str, ...]] = ("parallel", "series")
     scale_in_dynamics: ClassVar[bool] = False
     cold_start: ClassVar[bool] = False
+    input_unit: ClassVar[str] = "V"
 
     def parse(self, t: ConfigTable | None, raw: Mapping, source: str) -> dict:
         """The model's validated options (from its own table `t` and the tables in `tables`)."""

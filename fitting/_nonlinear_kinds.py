@@ -100,6 +100,7 @@ class BoucWenOscillatorKind(ModelKind):
     largest force, and $\delta$ the best of $\{1, 0, -0.5, -1.4\}$ by simulated error. $\beta$ only enters through
     $\beta\gamma$ and $\beta\delta$ and $\nu$ is usually 1: both are fixed by default (`[fit] free` frees them)."""
 
+    input_unit = "N"  # v_in is the force
     table, name = "model", "bouc_wen_oscillator"
     keys = _BW_NAMES + ("hold", "substeps")
     blocks = ()

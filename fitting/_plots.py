@@ -17,6 +17,7 @@ from piezojax._checks import PiezojaxValueError
 from ._data import UNITS
 
 _NAMES = {"t": "time", "v_in": "drive voltage", "v_out": "sensor voltage"}
+_DRIVES = {"N": "drive force"}  # what `v_in` holds for a model driven by another quantity than a voltage
 _PREFIXES = ((1e-15, 1e15, "f"), (1e-12, 1e12, "p"), (1e-9, 1e9, "n"), (1e-6, 1e6, "µ"), (1e-3, 1e3, "m"),
              (1.0, 1.0, ""), (1e3, 1e-3, "k"), (1e6, 1e-6, "M"), (1e9, 1e-9, "G"))  # (size, factor, prefix)
 _STYLE = {"axes.grid": True, "grid.alpha": 0.3, "axes.formatter.useoffset": False, "axes.formatter.limits": (-4, 5),
@@ -137,16 +138,21 @@ def plot_timeseries(result, experiment=0, prediction: dict | None = None):
 
 
 @_styled
-def plot_loops(result, experiment=0, prediction: dict | None = None):
-    """Measured and predicted target channels of one experiment against the drive voltage `v_in` (the hysteresis
-    loops), one panel per channel, in engineering units. Arguments and return as `plot_timeseries`."""
+def plot_loops(result, experiment=0, prediction: dict | None = None, input_unit: str = "V"):
+    """Measured and predicted target channels of one experiment against the drive `v_in` (the hysteresis loops),
+    one panel per channel, in engineering units. Arguments and return as `plot_timeseries`; `input_unit`: the SI
+    unit of what `v_in` holds (`"V"`, or `"N"` for a force-driven model such as the Bouc–Wen oscillator)."""
     exp = _experiment(result, experiment)
     pred = prediction if prediction is not None else result.predict([exp], check_finite=False)[0]
     chans = [c for c in pred if exp.has(c)]
     if not chans:
         raise PiezojaxValueError(f"experiment {exp.name!r} has none of the predicted channels {sorted(pred)}")
     fig, axes = _figure(1, len(chans), (4.2 * len(chans), 3.8))
-    fv, vlabel = channel_label("v_in", exp.v_in)
+    if input_unit == "V":
+        fv, vlabel = channel_label("v_in", exp.v_in)
+    else:
+        fv, scaled = engineering_scale(exp.v_in, input_unit)
+        vlabel = f"{_DRIVES.get(input_unit, 'drive')} [{scaled}]"
     for k, c in enumerate(chans):
         ax = axes[0, k]
         y = np.asarray(exp[c], float)
@@ -216,10 +222,10 @@ def plot_convergence(result):
     return fig
 
 
-def save_figures(result, folder, max_experiments: int = 8, dpi: int = 110) -> list[Path]:
+def save_figures(result, folder, max_experiments: int = 8, dpi: int = 110, input_unit: str = "V") -> list[Path]:
     """Write the fit's figures into `folder`: `timeseries_<name>.png` and `loops_<name>.png` for the first
     `max_experiments` experiments (names from `figure_name`, made unique), `parameters.png` and
-    `convergence.png`. **Returns:** the paths written."""
+    `convergence.png`; `input_unit` as in `plot_loops`. **Returns:** the paths written."""
     folder = Path(folder)
     written = []
     exps = list(result.dataset or [])[:max_experiments]
@@ -233,9 +239,10 @@ def save_figures(result, folder, max_experiments: int = 8, dpi: int = 110) -> li
             k += 1
             stem = f"{figure_name(exp.name)}_{k}"
         used.add(stem)
-        for kind, fn in (("timeseries", plot_timeseries), ("loops", plot_loops)):
+        for kind, fig in (("timeseries", plot_timeseries(result, i, prediction=pred)),
+                          ("loops", plot_loops(result, i, prediction=pred, input_unit=input_unit))):
             path = folder / f"{kind}_{stem}.png"
-            fn(result, i, prediction=pred).savefig(path, dpi=dpi)
+            fig.savefig(path, dpi=dpi)
             written.append(path)
     if len(result.parameter_names) and math.isfinite(result.cost):
         path = folder / "parameters.png"

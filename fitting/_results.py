@@ -69,6 +69,10 @@ def lack_of_fit(metrics: dict[str, dict[str, dict]]) -> tuple[float, str, str] |
     return worst if worst is not None and worst[0] >= LACK_OF_FIT_RATIO else None
 
 
+# how a start that did not converge ended, in the report's multi-start line
+_START_CODES = {"max_steps_reached": "max_steps"}
+
+
 @dataclasses.dataclass
 class FitResult:
     """What `fitting.solve`/`fitting.fit` return.
@@ -104,7 +108,9 @@ class FitResult:
       `LACK_OF_FIT_RATIO` (1.2; records of 1000 samples or more); `summary()`'s `lack_of_fit` gives the worst ratio
       there, converged or not.
     - `starts`: with a multi-start fit (`solve(..., starts=...)`), per start: final `cost`, `success`, `code`,
-      `reason`, `steps`, and `best` (the one reported); `None` otherwise.
+      `reason`, `steps`, and `best` (the one reported); `None` otherwise. After the command line's re-seeding
+      rounds, the first fit's, each with `first_of`, the number of fits run (`best`: the one the second fit
+      started from).
     - `u`: the scaled parameters the solver worked with (`Problem.u_of` of `params`), to compare with another
       solver run on `Problem.residuals`.
     - `predictor`, `targets`, `weights`, `dataset`: how the model was fitted (the predictor, the target channels,
@@ -196,10 +202,16 @@ class FitResult:
                          "are good to about 7 digits at best")
         if self.starts:
             ok = sum(st["success"] for st in self.starts)
-            lines.append(f"  multi-start: {len(self.starts)} starts, {ok} converged; final costs "
+            fits = self.starts[0].get("first_of", 1)
+            # the starts of the first of several fits (the command line's re-seeding rounds, `first_of`): the
+            # verdict above is that of the fit kept, and the second fit started from the start marked *
+            head = (f"multi-start of the first fit (of {fits}; the second started from *)" if fits > 1
+                    else "multi-start")
+            lines.append(f"  {head}: {len(self.starts)} starts, {ok} converged; final costs "
                          + ", ".join(f"{st['cost']:.4e}{'*' if st['best'] else ''}"
-                                     + (" (outpaced)" if st["code"] == "outpaced" else "") for st in self.starts)
-                         + " (* reported)")
+                                     + ("" if st["success"] else f" ({_START_CODES.get(st['code'], st['code'])})")
+                                     for st in self.starts)
+                         + ("" if fits > 1 else " (* reported)"))
         lines.append("parameters (value ± standard error):")
         w = max(len(n) for n in self.parameter_names)
         for n, v, s, st in zip(self.parameter_names, self.values, self.std_errors, self.std_error_status):
@@ -260,9 +272,9 @@ class FitResult:
             self.write_files(tmp, figures=figures, extra=extra)
         return path
 
-    def write_files(self, folder, figures: bool = True, extra: dict | None = None) -> None:
+    def write_files(self, folder, figures: bool = True, extra: dict | None = None, input_unit: str = "V") -> None:
         """Write the files of `save` into the existing folder `folder` (not atomically: for a caller that writes
-        into a temporary folder of its own)."""
+        into a temporary folder of its own); `input_unit` as in `fitting.save_figures`."""
         from .files import save_json
 
         folder = Path(folder)
@@ -276,7 +288,7 @@ class FitResult:
         if figures:
             from . import _plots
 
-            _plots.save_figures(self, folder)
+            _plots.save_figures(self, folder, input_unit=input_unit)
 
     def plot(self, kind: str = "timeseries", experiment=0):
         """One figure of the fit (a `matplotlib.figure.Figure`, in engineering units): `kind` is `"timeseries"`

@@ -696,9 +696,9 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
 
 def _whole_run(result, fits: list):
     """`result`, one of `fits` (every fit `_reseed` ran, the first fit first), with the counts and the time of all
-    of them, and the first fit's initial cost and starts; its history is that of the fits up to `result` (each
-    started from the one before: a round follows only a kept one), one after the other (the cost jumps up where
-    plays were re-seeded), counted in the steps of the fits before."""
+    of them, and the first fit's initial cost and starts (each marked `first_of`: how many fits ran); its history
+    is that of the fits up to `result` (each started from the one before: a round follows only a kept one), one
+    after the other (the cost jumps up where plays were re-seeded), counted in the steps of the fits before."""
     history, history_steps, offset = [], [], 0
     for f in fits[: next(i for i, f in enumerate(fits) if f is result) + 1]:
         history += list(f.history)
@@ -706,7 +706,8 @@ def _whole_run(result, fits: list):
         offset += int(f.steps)
     return dataclasses.replace(
         result, steps=sum(int(f.steps) for f in fits), accepted_steps=sum(int(f.accepted_steps) for f in fits),
-        seconds=sum(float(f.seconds) for f in fits), initial_cost=fits[0].initial_cost, starts=fits[0].starts,
+        seconds=sum(float(f.seconds) for f in fits), initial_cost=fits[0].initial_cost,
+        starts=[dict(st, first_of=len(fits)) for st in fits[0].starts] if fits[0].starts else fits[0].starts,
         history=history, history_steps=history_steps)
 
 
@@ -808,7 +809,7 @@ def _cmd_fit(args) -> int:
             lines.insert(0, "values CONFIG does not give, taken from the data (give them in CONFIG to simulate):")
         report = "\n".join([result.report(), *lines, *hints])
         _info(f"writing {out}", quiet)
-        result.write_files(tmp, figures=not args.no_figures, extra=extra)
+        result.write_files(tmp, figures=not args.no_figures, extra=extra, input_unit=config.model_kind.input_unit)
         if hints or lines:  # the report with the command's lines
             fitting.files.atomic_write_text(tmp / "report.txt", report + "\n")
         fitting.files.atomic_write_text(tmp / "config.toml", config.text)
@@ -921,7 +922,8 @@ def _cmd_predict(args) -> int:
             names[exp.name] = name
         for exp, preds in results:
             pred_exp = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
-            fitting.save_experiment(pred_exp, tmp / f"{names[exp.name]}.csv")
+            fitting.save_experiment(pred_exp, tmp / f"{names[exp.name]}.csv",
+                                    units={"v_in": config.model_kind.input_unit})
         fitting.files.save_json(tmp / "metrics.json", {
             "model": str(Path(args.model_dir).absolute()),
             "files": {exp.name: {"input": exp.source, "output": f"{names[exp.name]}.csv"} for exp, _ in results},
@@ -963,7 +965,7 @@ def _cmd_simulate(args) -> int:
     result = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
     _check_interrupted()
     _hold_signals()
-    fitting.save_experiment(result, out, marker="simulate")
+    fitting.save_experiment(result, out, marker="simulate", units={"v_in": config.model_kind.input_unit})
     _info(f"wrote {', '.join(preds)} for {exp.n} samples to {out}")
     return EXIT_OK
 

@@ -129,6 +129,7 @@ def test_bouc_wen_oscillator_kind_through_the_command_line(tmp_path):
                  str(tmp_path / "pred")]) == 0
     metrics = json.loads((tmp_path / "pred" / "metrics.json").read_text())["metrics"]
     assert metrics["test"]["displacement"]["rmse"] < 1.1e-6  # the noise is 1e-6
+    assert "v_in [N]" in (tmp_path / "pred" / "test.csv").read_text().splitlines()[0]  # v_in is the force
 
 
 def test_electromechanical_kind_recovers_the_mechanics_from_displacement_and_charge():
@@ -358,7 +359,7 @@ def test_a_kept_re_seeded_fit_reports_the_whole_command():
     third = Fit(4, 2, 0.25, 1.1, None, [1.1, 0.85], [0, 4])  # re-seeded again, not kept
     out = _whole_run(second, [first, second, third])
     assert (out.steps, out.accepted_steps, out.seconds) == (20, 15, 2.75)
-    assert out.initial_cost == 5.0 and out.starts == first.starts
+    assert out.initial_cost == 5.0 and out.starts == [{"cost": 1.0, "first_of": 3}, {"cost": 1.2, "first_of": 3}]
     assert out.history == [5.0, 2.0, 1.0, 1.5, 0.9, 0.8] and out.history_steps == [0, 4, 10, 10, 13, 16]
 
 

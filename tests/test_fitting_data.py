@@ -182,6 +182,23 @@ def test_round_trip(tmp_path, rng, suffix):
     _assert_same(e2, back2)
 
 
+def test_save_experiment_unit_labels(tmp_path, rng):
+    """`units` relabels columns (a force-driven model's input) in the CSV header and the HDF5 attributes; the values
+    are unchanged and the file reads back as before. A label for a column the experiment lacks is refused."""
+    e = _make(rng)
+    save_experiment(e, tmp_path / "f.csv", units={"v_in": "N"})
+    head = (tmp_path / "f.csv").read_text().splitlines()[0]
+    assert "v_in [N]" in head and "displacement [m]" in head
+    _assert_same(e, load_experiment(tmp_path / "f.csv"))
+    save_experiment(e, tmp_path / "f.h5", units={"v_in": "N"})
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        assert f["v_in"].attrs["units"] == "N" and f["displacement"].attrs["units"] == "m"
+    for bad in ({"charge": "C"}, {"v_in": ""}, {"v_in": 3}):
+        with pytest.raises(PiezojaxValueError, match="`units`"):
+            save_experiment(e, tmp_path / "g.csv", units=bad)
+    assert not (tmp_path / "g.csv").exists()
+
+
 def test_hdf5_group(tmp_path, rng):
     e = _make(rng)
     p = tmp_path / "g.h5"

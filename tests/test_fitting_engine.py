@@ -1,5 +1,6 @@
 """The calibration engine: Jacobian, parameter selection, padding, failure modes, bad input, save/load."""
 
+import dataclasses
 import json
 
 import equinox as eqx
@@ -155,6 +156,12 @@ def test_multistart_runs_each_start_as_alone_and_reports_the_best(data, method):
     best = min(ok, key=lambda i: res.starts[i]["cost"])
     assert res.starts[best]["best"] and res.success and res.cost == pytest.approx(res.starts[best]["cost"], rel=1e-12)
     assert "multi-start: 3 starts, 2 converged" in res.report()
+    assert "(nonfinite_initial)" in res.report() and "(* reported)" in res.report()
+    # the first of several fits (the command line's re-seeding rounds): the line says so, the verdict is not its own
+    later = dataclasses.replace(res, starts=[dict(st, first_of=3) for st in res.starts])
+    line = next(li for li in later.report().splitlines() if "multi-start" in li)
+    assert line.startswith("  multi-start of the first fit (of 3; the second started from *): 3 starts")
+    assert "(* reported)" not in line
     # the starts do not interact: without the failing start, each takes the same steps to the same cost; alone (a
     # single start runs unbatched, so rounding differs and the last steps near machine precision may differ), each
     # reaches the same cost

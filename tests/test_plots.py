@@ -65,6 +65,8 @@ def test_figures_carry_units_and_no_offsets(result):
     assert loops.axes[0].get_xlabel() == "drive voltage [V]"
     assert loops.axes[0].get_ylabel() == "displacement [µm]"
     assert len(loops.axes[0].get_xticks()) <= 8  # MaxNLocator(6): no crowded ticks on triangle loops
+    # a force-driven model (the Bouc–Wen oscillator's v_in holds newtons): its drive is labelled as such
+    assert fitting.plot_loops(result, 1, input_unit="N").axes[0].get_xlabel() == "drive force [N]"
     par = result.plot("parameters")
     par.canvas.draw()
     assert "standard error [% of value]" in _labels(par)
