@@ -201,6 +201,55 @@ def _stop(widths, v):
     return pj.StopOperator(widths)(v)
 
 
+def _stop_fit(signals: list, targets: list, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+    r"""`(widths, coefficients)` of $y = c_0 s + \sum_j c_j S_{\rho_j}[s] + \text{offset}$ over records (`signals`
+    $s$ and `targets` $y$, one array each per record), $c \ge 0$, `n` stop operators $S_{\rho_j}$ (`coefficients`:
+    $c_0, c_1 \dots c_n$); `None` when $s$ is zero. For given widths the coefficients are a non-negative least
+    squares (the offset free in sign); the widths start at the `n` heaviest of a geometric grid (0.5–80 % of
+    $\max|s|$, four per element) or spread geometrically over three ranges, each start is refined by
+    `scipy.optimize.least_squares` on their logarithms (the coefficients projected out; the widths bounded by
+    $\max|s|$: a wider stop is the signal itself, collinear with the first column), and the smallest residual is
+    kept (the problem has local minima: measured, a spread start found the truth's basin where the grid's heaviest
+    widths left one element dead)."""
+    top = float(max(np.max(np.abs(x)) for x in signals))
+    if not (np.isfinite(top) and top > 0):
+        return None
+    rows = row_subset([x.size for x in signals], MAX_ROWS)
+    y = np.concatenate([np.asarray(t)[keep] for t, keep in zip(targets, rows)])
+
+    def coefficients(log_widths):
+        a = np.concatenate([np.column_stack([x, _stops(x, np.exp(log_widths)) if n else np.zeros((x.size, 0)),
+                                             np.ones_like(x), -np.ones_like(x)])[keep]
+                            for x, keep in zip(signals, rows)])
+        return a, nnls_gram(a, y)
+
+    def residual(log_widths):
+        a, c = coefficients(log_widths)
+        return a @ c - y
+
+    widths = np.zeros(0)
+    if n:
+        grid = top * np.geomspace(0.005, 0.8, 4 * n)
+        _, c = coefficients(np.log(grid))
+        starts = [np.sort(grid[np.argsort(-c[1 : 1 + grid.size], kind="stable")[:n]])] + [
+            top * np.geomspace(lo, hi, n) for lo, hi in ((0.01, 0.8), (0.02, 0.5), (0.05, 0.3))]
+        best = None
+        for w0 in starts:
+            fit = scipy.optimize.least_squares(residual, np.log(w0), diff_step=1e-3, max_nfev=50 * n,
+                                               bounds=(np.log(1e-4 * top), np.log(top)))
+            cost = float(np.sum(fit.fun**2))
+            if np.all(np.isfinite(fit.x)) and np.isfinite(cost) and (best is None or cost < best[0]):
+                best = (cost, np.sort(np.exp(fit.x)))
+        widths = best[1] if best is not None else starts[0]
+    _, c = coefficients(np.log(widths))
+    return widths, c[: n + 1]
+
+
+def _live(c: np.ndarray) -> np.ndarray:
+    r"""The elements' coefficients $c_1 \dots c_n$ of `_stop_fit`, a dead one (0) raised to 1e-3 of the largest."""
+    return np.maximum(c[1:], 1e-3 * max(float(np.max(c[1:], initial=0.0)), c[0]))
+
+
 def _electromechanical_from_charge(recs, m: float, n: int, capacitance: float | None = None) -> dict | None:
     r"""Start of the electromechanical model from records `(v_in, displacement, charge, dt)` that measure both
     outputs (those of the smallest step); `None` where it finds no physical model ($C \le 0$ or $k \le 0$).
@@ -211,69 +260,89 @@ def _electromechanical_from_charge(recs, m: float, n: int, capacitance: float | 
     and $q$), so `_resonance_of` on $(q, x)$ gives $\omega_q^2 = (k + T^2/C)/m$, $\zeta_q$ and the gain
     $g = (T/C)/(m\omega_q^2)$. Then $V_{in} = V_p + V_H(q)$ is, exactly and at every sample,
     $V_{in} + (T/C)x = q/C + \sum_j S_{\rho_j}[q]/C_j$: element $j$ (`clip(s + dq/C_j, ±v_j)`) is a stop operator of
-    the charge of width $\rho_j = C_j v_j$, scaled by $1/C_j$. For given widths, $1/C$ and $1/C_j$ are a
-    non-negative least squares (with a free offset); the widths start at the `n` heaviest of a geometric grid
-    (0.5–80 % of $\max|q|$, four per element) or spread geometrically over three ranges, each start is refined by
-    `scipy.optimize.least_squares` on their logarithms (the coefficients projected out, the widths bounded by
-    $\max|q|$), and the smallest residual is kept. Measured on a numpy plant (four elements, 0.1 % noise): the
-    voltage-driven start had left the fit "converged" at 13.5× the charge noise; this one starts it at 1.3× the
-    fitted cost, and the fit reaches the noise (0.98–1.03×) in 30 steps."""
-    qx = [(q, x, dt) for _, x, q, dt in recs]
-    omega, zeta, g = _resonance_of(qx)
+    the charge of width $\rho_j = C_j v_j$, scaled by $1/C_j$: `_stop_fit` gives $1/C$, the $1/C_j$ and the widths.
+    Measured on a numpy plant (four elements, 0.1 % noise): the voltage-driven start had left the fit "converged"
+    at 13.5× the charge noise; this one starts it at 1.3× the fitted cost, and the fit reaches the noise
+    (0.98–1.03×) in 30 steps."""
+    omega, zeta, g = _resonance_of([(q, x, dt) for _, x, q, dt in recs])
     k_q = m * omega**2
     alpha = g * k_q  # T / C
-    q_all = [q for _, _, q, _ in recs]
-    rows = row_subset([q.size for q in q_all], MAX_ROWS)
-
-    def design(widths):
-        return np.concatenate([np.column_stack([q, _stops(q, widths) if n else np.zeros((q.size, 0)),
-                                                np.ones_like(q), -np.ones_like(q)])[keep]
-                               for q, keep in zip(q_all, rows)])
-
-    y = np.concatenate([(v + alpha * x)[keep] for (v, x, _, _), keep in zip(recs, rows)])
-
-    def coefficients(log_widths):
-        a = design(np.exp(log_widths))
-        return a, nnls_gram(a, y)
-
-    def residual(log_widths):
-        a, c = coefficients(log_widths)
-        return a @ c - y
-
-    widths = np.zeros(0)
-    top = float(max(np.max(np.abs(q)) for q in q_all))
-    if not (np.isfinite(alpha) and alpha != 0 and top > 0):
+    if not (np.isfinite(alpha) and alpha != 0):
         return None
-    if n:
-        grid = top * np.geomspace(0.005, 0.8, 4 * n)
-        _, c = coefficients(np.log(grid))
-        # several starts (the static fit has local minima: measured, a spread start found the truth's basin where
-        # the grid's heaviest widths left one element dead); the smallest residual is kept
-        starts = [np.sort(grid[np.argsort(-c[1 : 1 + grid.size], kind="stable")[:n]])] + [
-            top * np.geomspace(lo, hi, n) for lo, hi in ((0.01, 0.8), (0.02, 0.5), (0.05, 0.3))]
-        best = None
-        for w0 in starts:
-            # bounded: a stop wider than the charge's range is the charge itself, collinear with the 1/C column
-            fit = scipy.optimize.least_squares(residual, np.log(w0), diff_step=1e-3, max_nfev=50 * n,
-                                               bounds=(np.log(1e-4 * top), np.log(top)))
-            cost = float(np.sum(fit.fun**2))
-            if np.all(np.isfinite(fit.x)) and np.isfinite(cost) and (best is None or cost < best[0]):
-                best = (cost, np.sort(np.exp(fit.x)))
-        if best is not None:
-            widths = best[1]
-        else:
-            widths = starts[0]
-    _, c = coefficients(np.log(widths))
-    if not c[0] > 0:
+    fit = _stop_fit([q for _, _, q, _ in recs], [v + alpha * x for v, x, _, _ in recs], n)
+    if fit is None or not fit[1][0] > 0:
         return None
+    widths, c = fit
     cap = 1.0 / c[0] if capacitance is None else capacitance
     t = alpha * cap
     k = k_q - alpha * t
     if not (np.isfinite(k) and k > 0 and np.isfinite(t)):
         return None
-    inv = np.maximum(c[1 : 1 + n], 1e-3 * max(float(np.max(c[1 : 1 + n], initial=0.0)), c[0]))  # no dead element
+    inv = _live(c)
     return {"b": 2 * zeta * omega * m, "k": k, "capacitance": cap, "t_em": t,
             "element_capacitances": 1.0 / inv, "breakaway_voltages": widths * inv}
+
+
+def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: float, predictor,
+                                         samples: int = 20000) -> dict | None:
+    r"""Start of the electromechanical model from records `(v_in, displacement, dt)` (those of the smallest step)
+    and a known `capacitance` $C$; `None` where it finds none. Quasi-statically $V_p = (k/T)x$ and $q = \beta x$,
+    $\beta = Ck/T + T$, so $V_{in} = (k/T)x + V_H(\beta x)$: a stop-operator model of the displacement
+    (`_stop_fit`: $V_{in} = a x + \sum_j c_j S_{r_j}[x]$, $a = k/T$, $c_j = \beta/C_j$, $r_j = C_j v_j/\beta$)
+    fixes everything but $T$ and the damping. These two, which set the resonance $\omega_0^2 = aT/m$ and
+    $\zeta$, are chosen by simulating the whole model (`predictor`, batched) for 16 resonances from $f_s/500$ to
+    $f_s/4$ and five $\zeta$ from 0.02 to 0.5, on the first `samples` samples of the records (each from rest):
+    the smallest squared error. (The linear ARX of the voltage-driven start cannot see this resonance: the
+    sticking elements stiffen the small-signal response, so it moves with the amplitude.) Measured on a numpy
+    plant (four elements, 0.1 % noise, no charge): the voltage-driven start had left the fit at 4.8× the noise,
+    this one started it at 5× with the resonance 0.6 % off, and the fit reached 1.01–1.03×."""
+    v_all = [r[0] for r in recs]
+    sign = 1.0 if chord(np.concatenate(v_all), np.concatenate([r[1] for r in recs])) >= 0 else -1.0
+    x_all = [sign * r[1] for r in recs]
+    fit = _stop_fit(x_all, v_all, n)
+    if fit is None or not fit[1][0] > 0:
+        return None
+    widths, c = fit
+    a, cj = float(c[0]), _live(c)
+    dt = recs[0][2]
+    omegas = 2 * np.pi * np.geomspace(0.002, 0.25, 16) / dt
+    zetas = np.array([0.02, 0.05, 0.1, 0.2, 0.5])
+    t_em = sign * m * np.repeat(omegas, zetas.size) ** 2 / a
+    k = a * np.abs(t_em)
+    beta = capacitance * a + np.abs(t_em)
+    cands = {"b": 2 * np.tile(zetas, omegas.size) * np.sqrt(k * m), "k": k, "t_em": t_em,
+             "element_capacitances": beta[:, None] / cj, "breakaway_voltages": np.broadcast_to(widths * cj,
+                                                                                              (k.size, n))}
+    per = max(samples // len(recs), 2)
+    err = np.zeros(k.size)
+    for v, x, _ in recs:
+        sim = _batched_simulation(predictor, float(m), float(capacitance), float(dt), n)
+        out = np.asarray(sim(*(jnp.asarray(np.asarray(cands[key], float)) for key in _EM_SCAN),
+                             jnp.asarray(v[:per])))
+        err += np.sum((out - x[:per]) ** 2, axis=1)
+    err = np.where(np.isfinite(err), err, np.inf)
+    if not np.isfinite(np.min(err)):
+        return None
+    i = int(np.argmin(err))
+    return {key: np.asarray(cands[key])[i] for key in _EM_SCAN} | {"capacitance": capacitance}
+
+
+_EM_SCAN = ("b", "k", "t_em", "element_capacitances", "breakaway_voltages")
+
+
+@functools.cache
+def _batched_simulation(predictor, m: float, capacitance: float, dt: float, n: int):
+    """The displacement of `predictor` for a batch of electromechanical models (the `_EM_SCAN` values, one row
+    each), compiled once per record length."""
+    from ._predict import ExperimentArrays
+
+    def one(b, k, t_em, caps, volts, v):
+        model = pj.ElectromechanicalActuator(m, b, k, capacitance, t_em[None], caps, volts)
+        data = ExperimentArrays(t=jnp.arange(v.size, dtype=v.dtype) * dt, dt=jnp.asarray(dt, v.dtype), v_in=v,
+                                channels={})
+        return predictor.fn(model, data)["displacement"]
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None)))
 
 
 class ElectromechanicalKind(ModelKind):
@@ -288,8 +357,10 @@ class ElectromechanicalKind(ModelKind):
 
     Start: from records that measure the charge as well, `_electromechanical_from_charge` (the mechanics from the
     charge-to-displacement resonance, which the hysteresis does not touch, then the elements from the exact
-    relation $V_{in} + (T/C)x = q/C + V_H(q)$). Otherwise, or where that finds no physical model: to first order
-    the charge follows the voltage, $dq \approx C_e\,dV_p$ with $C_e = C + T^2/k$, so
+    relation $V_{in} + (T/C)x = q/C + V_H(q)$). From the displacement alone with `capacitance` given,
+    `_electromechanical_from_displacement` (stop operators of the displacement, the resonance chosen by simulation).
+    Otherwise, or where those find no physical model: to first order the charge follows the voltage,
+    $dq \approx C_e\,dV_p$ with $C_e = C + T^2/k$, so
     element $j$ is $a_j S_{\rho_j}[V_{in}]$ in volts (a stop operator, $a_j = C_e/C_j$, $\rho_j = v_j/a_j$) and
     $x \approx \frac{T}{k} F(s)\bigl[V_{in} - \sum_j a_j S_{\rho_j}[V_{in}]\bigr]$, $F$ the DC-normalised resonance:
     linear in $(T/k, Ta_j/k) \ge 0$ for each candidate resonance of `fitting.cold_start_actuator`'s estimate,
@@ -364,6 +435,10 @@ class ElectromechanicalKind(ModelKind):
                                      "give every parameter value explicitly in the configuration)")
         dt = min(r[2] for r in recs)
         recs = [r for r in recs if r[2] == dt]
+        if o["capacitance"] is not None:
+            start = _electromechanical_from_displacement(recs, o["m"], n, o["capacitance"], self.predictor(config))
+            if start is not None:
+                return start | {"t_em": np.r_[start["t_em"], np.zeros(o["degree"])]}
         v = np.concatenate([r[0] for r in recs])
         x = np.concatenate([r[1] for r in recs])
         # candidate element widths from 0.5 % to 80 % of the largest voltage (geometric: narrow elements shape the
