@@ -334,6 +334,11 @@ def solve(
     return result
 
 
+def _start_name(i: int, n: int) -> str:
+    """How the progress lines of a multi-start fit name start `i` of `n` (nothing for a single start)."""
+    return f"start {i + 1} of {n}, " if n > 1 else ""
+
+
 def _past_kinks(solver, level, per_start, kink_gain, *, interrupted, kink_restarts, max_steps, meter, gtol, label,
                 last_level) -> None:
     """The restarts past kinks of `solve`, appending each kept restart's run to its start's `per_start` list."""
@@ -350,7 +355,7 @@ def _past_kinks(solver, level, per_start, kink_gain, *, interrupted, kink_restar
             if nxt is None:
                 break
             (run,) = iterate(solver, level.core, jnp.asarray(nxt, last.u.dtype)[None], max_steps=max_steps, meter=meter,
-                             label=f"{label}[past a kink] ")
+                             label=f"{label}[{_start_name(i, len(per_start))}past a kink] ")
             if run.verdict.code == "interrupted":
                 interrupted = True
                 break

@@ -108,6 +108,21 @@ def test_a_record_scored_from_a_time_fits_only_those_samples():
     assert result.num_residuals == N - 150 and result.metrics["r"]["displacement"]["samples"] == N - 150
 
 
+def test_every_start_of_a_multi_start_fit_goes_past_its_kinks(capsys):
+    """Two starts stop at the kink k = 0 at different costs; each is restarted past it, and the progress lines say
+    which start they belong to. The start that had stopped 9 % higher ends lowest: a start beaten before its
+    restarts can win after them (so none is skipped)."""
+    y = 1.3 * V - 0.7 * W - 0.2 * (V + 2.0)
+    kw = dict(predictor=_predictor(), free=["a", "k"], weights={"displacement": 1.0}, max_steps=200)
+    starts = [_model(a=0.5, b=0.0, c=-0.7, k=0.3), _model(a=3.0, b=0.0, c=-0.7, k=0.3)]
+    stuck = [fitting.fit(m, _dataset(y), kink_restarts=0, progress=False, **kw).cost for m in starts]
+    assert stuck[0] > 1.05 * stuck[1]
+    result = fitting.fit(starts[0], _dataset(y), starts=starts, progress=True, **kw)
+    err = capsys.readouterr().err
+    assert "[start 1 of 2, past a kink]" in err and "[start 2 of 2, past a kink]" in err
+    assert result.success and result.starts[0]["best"] and result.starts[0]["cost"] < stuck[1]
+
+
 def test_minimum_at_a_kink_is_converged_and_a_descent_point_is_not():
     # y does not reach the |k| branch: the cost is smallest at the kink k = 0, where the residual is not zero
     y = 1.3 * V - 0.7 * W - 0.2 * (V + 2.0)
