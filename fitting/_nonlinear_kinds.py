@@ -294,8 +294,8 @@ def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: fl
     $f_s/4$ and five $\zeta$ from 0.02 to 0.5, on the first `samples` samples of the records (each from rest):
     the smallest squared error. (The linear ARX of the voltage-driven start cannot see this resonance: the
     sticking elements stiffen the small-signal response, so it moves with the amplitude.) Measured on a numpy
-    plant (four elements, 0.1 % noise, no charge): the voltage-driven start had left the fit at 4.8× the noise,
-    this one started it at 5× with the resonance 0.6 % off, and the fit reached 1.01–1.03×."""
+    plant (four elements, 0.1 % noise, no charge): the voltage-driven start had left the fit at 4.8× the noise;
+    this one has the resonance 0.6 % off, and the fit reaches 1.15× (1.25× on a held-out record)."""
     v_all = [r[0] for r in recs]
     sign = 1.0 if chord(np.concatenate(v_all), np.concatenate([r[1] for r in recs])) >= 0 else -1.0
     x_all = [sign * r[1] for r in recs]
