@@ -250,6 +250,9 @@ class ElectromechanicalActuator(eqx.Module):
             y, s0, q0 = carry
             _, q, v_h = model._accel(y, a[0], a[1], s0, q0)
             out = jnp.stack([y[0], y[1], q, v_h, a[0] - v_h])
+            # the elements move with the charge's jump at the sample (a zero-order hold's step of the input): the
+            # substeps start from the state after it, not on a straight path from before it (first order in h)
+            carry = (y, maxwell_voltages(s0, q0, q, model.element_capacitances, model.breakaway_voltages), q)
             carry, _ = jax.lax.scan(lambda c, j: substep(c, j, a, slope), carry,
                                     jnp.arange(substeps, dtype=dtype))
             return carry, out
