@@ -76,6 +76,9 @@ def test_gaussian_preisach_pi_limit_and_gradients():
     assert 1e-4 < float(jnp.max(jnp.abs(smooth(v) - exact))) < 0.1 * float(jnp.ptp(exact))
     with pytest.raises(pj.PiezojaxValueError, match="smoothing"):
         pj.GaussianPreisach(0.01, 30.0, 20.0, smoothing=-1.0)
+    for bad in (0.0, -1.0, np.nan):  # sigma_s divides the shape function: refused when built, not when called
+        with pytest.raises(pj.PiezojaxValueError, match="`sigma_s` must be finite and > 0"):
+            pj.GaussianPreisach(0.01, 30.0, bad)
 
 
 def test_gaussian_preisach_wiping_out_and_congruent_minor_loops():

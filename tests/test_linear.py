@@ -451,6 +451,9 @@ def test_bad_input_errors_name_the_argument():
         pj.TransferFunction([1.0], [[1.0, 2.0]])
     # leading zeros of num do not make a transfer function improper (as in scipy)
     np.testing.assert_allclose(pj.TransferFunction([0.0, 0.0, 2.0], [1.0, 1.0]).num, [0.0, 2.0])
+    # ... but a traced num cannot be stripped: the error says so (it had named a degree of 2)
+    with pytest.raises(ValueError, match="a traced `num`.*drop its leading zeros"):
+        jax.jit(lambda n: pj.TransferFunction(n, jnp.array([1.0, 3.0])).dc_gain())(jnp.array([0.0, 0.0, 2.0]))
     with pytest.raises(ValueError, match="`B`"):
         pj.StateSpace(np.eye(2), np.ones(3), np.ones(2))
     with pytest.raises(ValueError, match="`C`"):

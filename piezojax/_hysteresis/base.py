@@ -75,7 +75,8 @@ class AbstractHysteresis(AbstractCell):
         - `signal`: 1-D real, finite input samples, shape `(time,)` (complex or boolean: `PiezojaxValueError`).
         - `state`: the state to start from, e.g. the final state of an earlier call. Default: `self.init()`.
 
-        **Returns:** `(final_state, y)` with `y` of shape `(time,)`.
+        **Returns:** `(final_state, y)` with `y` of shape `(time,)`, or `(time, n)` for an operator that returns one
+        output per threshold (`PlayOperator`, `StopOperator` with a vector of thresholds).
         """
         op, signal, state = self._prepare(signal, state)
         return op._run(state, signal)

@@ -330,7 +330,7 @@ class GaussianPreisach(_AbstractStopCell):
         self.thresholds = r
         self.weights = 2 * density * h * jnp.exp(-0.5 * (r / sigma_r) ** 2)
         self.sigma_s = jnp.asarray(sigma_s, dtype)
-        self.sigma_s = check_positive(self.sigma_s, "sigma_s", allow_zero=True)
+        self.sigma_s = check_positive(self.sigma_s, "sigma_s")
         self.w0 = check_finite(jnp.asarray(w0, dtype), "w0")
         self.smoothing = check_smoothing(smoothing, dtype)
 

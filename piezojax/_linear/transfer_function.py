@@ -27,6 +27,11 @@ def normalise_tf(num: ArrayLike, den: ArrayLike) -> tuple[Array, Array]:
             num = num[max(0, min(lead, num.shape[0] - den.shape[0])) :] if num.shape[0] > den.shape[0] else num
     den = check_value(den, lambda d: d[0] != 0, "`den` must have a nonzero leading coefficient den[0]")
     if num.shape[0] > den.shape[0]:
+        if num_c is None:  # traced: its leading zeros cannot be seen, and they would change the shapes
+            raise PiezojaxValueError(
+                f"`num` has {num.shape[0]} coefficients, more than the {den.shape[0]} of `den`: a traced `num` (under "
+                "`jit`, `vmap` or differentiation) must have at most as many as `den` (drop its leading zeros)"
+            )
         raise PiezojaxValueError(
             f"the transfer function must be proper: `num` has degree {num.shape[0] - 1} > "
             f"degree {den.shape[0] - 1} of `den`"
@@ -50,7 +55,8 @@ class TransferFunction(AbstractLinearSystem):
 
     **Arguments:**
 
-    - `num`: numerator coefficients, 1-D, finite, degree ≤ degree of `den` (leading zeros are ignored).
+    - `num`: numerator coefficients, 1-D, finite, degree ≤ degree of `den` (leading zeros are ignored; a traced
+      `num` has no more coefficients than `den`).
     - `den`: denominator coefficients, 1-D, finite, `den[0] != 0`.
 
     ```python
