@@ -14,6 +14,7 @@ import numpy as np
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
 
+from ._data import UNITS
 from ._stationarity import max_gradient_cosine
 
 # A fit whose residual is this many times the records' white-noise level or more is reported as missing part of
@@ -232,7 +233,7 @@ class FitResult:
             for ch, m in chans.items():
                 ratio = m.get("rmse_over_noise")
                 lines.append(
-                    f"  {name:<20} {ch:<13} {m['rmse']:.4e}  {m['nrmse_percent']:7.3f} %  "
+                    f"  {name:<20} {ch:<13} {m['rmse']:.4e} {UNITS.get(ch, ''):<2} {m['nrmse_percent']:7.3f} %  "
                     f"{m['max_error_percent']:7.3f} %  " + ("     -" if ratio is None else f"{ratio:6.2f}")
                 )
         worst = lack_of_fit(self.metrics)

@@ -376,6 +376,26 @@ def test_a_kept_re_seeded_fit_reports_the_whole_command():
     assert out.history == [5.0, 2.0, 1.0, 1.5, 0.9, 0.8] and out.history_steps == [0, 4, 10, 10, 13, 16]
 
 
+def test_the_report_names_modes_the_records_cannot_resolve():
+    """`_mode_hints`: a fitted resonance above the records' Nyquist frequency, and a damping within two standard
+    errors of 0, each get a line; a resolved, damped mode gets none."""
+    import types
+
+    from fitting.cli import _mode_hints
+
+    result = types.SimpleNamespace(
+        dataset=[types.SimpleNamespace(dt=1e-4), types.SimpleNamespace(dt=2e-4)],
+        parameter_names=["dynamics.omega[0]", "dynamics.omega[1]", "dynamics.zeta[0]", "dynamics.zeta[1]"],
+        values=[2200.0, 9.5e7, 0.06, 7e-5], std_errors=[3.0, 1e14, 0.002, 1.4e-4],
+        std_error_status=["finite"] * 4)
+    lines = _mode_hints(result)
+    assert len(lines) == 2
+    assert "dynamics.omega[1] = 9.5e+07 rad/s is above the Nyquist frequency of the records (3.142e+04" in lines[0]
+    assert lines[1].startswith("  dynamics.zeta[1] = 7e-05 ± 0.00014 is within two standard errors of 0")
+    result.values = [2200.0, 9000.0, 0.06, 0.05]
+    assert _mode_hints(result) == []
+
+
 def test_the_command_line_refits_from_re_seeded_plays_and_keeps_the_better(tmp_path):
     """Twelve plays on a three-play plant: the fit leaves plays dead, the CLI fits again from them re-seeded and
     keeps the lower cost; result.json says what was done."""
