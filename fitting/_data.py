@@ -658,6 +658,23 @@ def _read_csv(path: Path, columns: Mapping[str, str] | None = None) -> dict[str,
                 f"file {str(path)!r}: cannot parse numbers: line {lineno}, {where} holds {m.group(1)!r}"
             ) from e
         raise PiezojaxValueError(f"file {str(path)!r}: cannot parse numbers ({e})") from e
+    # the checks `Experiment` makes by sample index, made here by the file's line, for the columns it will read
+    for j, h in enumerate(header):
+        name = (columns or {}).get(h, h)
+        if name not in COLUMNS:
+            continue
+        col = values[:, j]
+        where = f"field {h}" if h.isdigit() else f"column {h!r}"
+        bad = ~np.isfinite(col)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise PiezojaxValueError(f"file {str(path)!r}: line {body[i][0]}, {where} holds a non-finite value "
+                                     f"({col[i]}); {int(bad.sum())} in that column")
+        if name == "t" and col.size > 1 and not np.all(np.diff(col) > 0):
+            i = int(np.argmax(~(np.diff(col) > 0)))
+            later, earlier = float(col[i + 1]), float(col[i])
+            raise PiezojaxValueError(f"file {str(path)!r}: {where} (the time) must increase from line to line: line "
+                                     f"{body[i + 1][0]} holds {later!r}, line {body[i][0]} {earlier!r}")
     return {h: values[:, j] for j, h in enumerate(header)}
 
 

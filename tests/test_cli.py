@@ -298,7 +298,7 @@ def _bad_cases(d):
     return {
         "missing column": (["fit", cfg, str(d / "nocol.csv")], "required column(s) ['v_in'] missing"),
         "non-uniform t": (["fit", cfg, str(d / "nonuniform.csv")], "not uniformly sampled"),
-        "NaN": (["fit", cfg, str(d / "nan.csv")], "non-finite value (nan) at row 17"),
+        "NaN": (["fit", cfg, str(d / "nan.csv")], "line 19, column 'displacement' holds a non-finite value (nan)"),
         "unknown block kind": (["fit", str(d / "badkind.toml"), ok], "unknown kind 'stop'; allowed kinds"),
         "unknown table": (["fit", str(d / "badtable.toml"), ok], "unknown table or key [motor]"),
         "unknown key": (["fit", str(d / "badkey.toml"), ok], "unknown key 'tau'"),

@@ -280,7 +280,9 @@ def test_csv_comments_blank_lines_and_extra_columns(tmp_path):
         ("t,force\n0,1\n1,2\n", r"required column\(s\) \['v_in'\] missing"),
         ("v_in,force\n0,1\n1,2\n", r"required column\(s\) \['t'\] missing"),
         ("t,v_in,force,flux\n0,1,2,3\n1,2,3,4\n", r"unknown column\(s\) \['flux'\]"),
-        ("t,v_in,force\n0,1,2\n1,2,nan\n2,3,4\n", r"column 'force' has a non-finite value \(nan\) at row 1"),
+        ("t,v_in,force\n0,1,2\n1,2,nan\n2,3,4\n", r"line 3, column 'force' holds a non-finite value \(nan\)"),
+        ("t,v_in\n0,1\n# note\n0,2\n1,3\n", r"column 't' \(the time\) must increase from line to line: line 4 holds "
+                                             r"0.0, line 2 0.0"),
         ("t,v_in,force\n0,1,2\n1,2,\n2,3,4\n", r"cannot parse numbers: line 3, column 'force' holds ''"),
         ("# note\nt,v_in,force\n0,1,2\n\n1,x1,3\n", r"cannot parse numbers: line 5, column 'v_in' holds 'x1'"),
         ("t,v_in,force\n0,1,2\n1,2\n", r"line 3 has 2 fields but the header names 3"),
