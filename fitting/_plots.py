@@ -188,10 +188,9 @@ def plot_parameters(result, max_parameters: int = 40):
     finite = np.isfinite(rel)
     ax.barh(y[finite], rel[finite], color="C0")
     ax.set_xscale("log")
-    top = float(np.nanmax(rel)) if finite.any() else 1.0
-    for i in np.nonzero(~finite)[0]:
+    for i in np.nonzero(~finite)[0]:  # inside the panel, at its left (x in axes units: it had spilled to the right)
         text = {"infinite": "inf", "at a bound": "at bound"}.get(status[i], "n/a")
-        ax.text(top, i, f" {text}", va="center", fontsize=8, color="C3")
+        ax.text(0.01, i, text, transform=ax.get_yaxis_transform(), va="center", ha="left", fontsize=8, color="C3")
     ax.set_yticks(y, [f"{name} ({i})" for i, name in enumerate(names)], fontsize=7)
     ax.invert_yaxis()
     ax.set(xlabel="standard error [% of value]", title="parameter uncertainty")

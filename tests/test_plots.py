@@ -72,6 +72,17 @@ def test_figures_carry_units_and_no_offsets(result):
     assert "standard error [% of value]" in _labels(par)
     assert [t.get_text() for t in par.axes[0].get_yticklabels()] == [f"{n} ({i})" for i, n in
                                                                      enumerate(result.parameter_names)]
+    # an undetermined parameter's "inf" marker stays inside its panel (it had been drawn past its right edge)
+    import dataclasses
+
+    status = ["infinite"] + list(result.std_error_status)[1:]
+    odd = fitting.plot_parameters(dataclasses.replace(result, std_error_status=status))
+    odd.canvas.draw()
+    box = odd.axes[0].get_window_extent()
+    marks = [t for t in odd.axes[0].texts if t.get_text() == "inf"]
+    assert len(marks) == 1
+    mark = marks[0].get_window_extent()
+    assert box.x0 <= mark.x0 and mark.x1 <= box.x1
     conv = result.plot("convergence")
     conv.canvas.draw()
     assert conv.axes[0].get_yscale() == "log" and conv.axes[0].get_xlabel() == "step [-]"
