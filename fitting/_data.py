@@ -910,6 +910,8 @@ def save_experiment(
         raise PiezojaxValueError(f"`marker` must be a word, got {marker!r}")
     extra = {} if marker is None else {FILE_MARKER: np.array(marker)}
     labels = dict(UNITS)
+    if units is not None and not isinstance(units, Mapping):
+        raise PiezojaxValueError(f"`units` must be a mapping of column to unit name, got {type(units).__name__}")
     for k, u in dict(units or {}).items():
         if k not in cols or not isinstance(u, str) or not re.fullmatch(r"[\w/.*^ -]+", u):
             raise PiezojaxValueError(f"`units`: {k!r} must be one of the experiment's columns {list(cols)} with a unit "

@@ -201,16 +201,23 @@ def _stop(widths, v):
     return pj.StopOperator(widths)(v)
 
 
+STOP_FIT_SAMPLES = 40000
+
+
 def _stop_fit(signals: list, targets: list, n: int) -> tuple[np.ndarray, np.ndarray] | None:
-    r"""`(widths, coefficients)` of $y = c_0 s + \sum_j c_j S_{\rho_j}[s] + \text{offset}$ over records (`signals`
-    $s$ and `targets` $y$, one array each per record), $c \ge 0$, `n` stop operators $S_{\rho_j}$ (`coefficients`:
-    $c_0, c_1 \dots c_n$); `None` when $s$ is zero. For given widths the coefficients are a non-negative least
-    squares (the offset free in sign); the widths start at the `n` heaviest of a geometric grid (0.5–80 % of
-    $\max|s|$, four per element) or spread geometrically over three ranges, each start is refined by
-    `scipy.optimize.least_squares` on their logarithms (the coefficients projected out; the widths bounded by
-    $\max|s|$: a wider stop is the signal itself, collinear with the first column), and the smallest residual is
-    kept (the problem has local minima: measured, a spread start found the truth's basin where the grid's heaviest
-    widths left one element dead)."""
+    r"""`(widths, coefficients)` of $y = c_0 s + \sum_j c_j S_{\rho_j}[s] + \text{offset}$ over records (`signals` $s$
+    and `targets` $y$, one array each per record), $c \ge 0$, `n` stop operators $S_{\rho_j}$ (`coefficients`: $c_0, c_1
+    \dots c_n$), on the first `STOP_FIT_SAMPLES` samples in all; `None` when $s$ is zero. For given widths the
+    coefficients are a non-negative least squares (the offset free in sign); the widths start at the `n` heaviest of a
+    geometric grid (0.5–80 % of $\max|s|$, four per element) or spread geometrically over three ranges, each start is
+    refined by `scipy.optimize.least_squares` on their logarithms (the coefficients projected out; the widths bounded by
+    $\max|s|$: a wider stop is the signal itself, collinear with the first column), and the smallest residual is kept
+    (the problem has local minima: measured, a spread start found the truth's basin where the grid's heaviest widths
+    left one element dead)."""
+    # the first `STOP_FIT_SAMPLES` samples in all (each record from rest, so a prefix is exact): every evaluation
+    # runs the stops over the whole signal (measured: 20 s for 4 elements on 1e5 samples without this limit)
+    per = max(STOP_FIT_SAMPLES // len(signals), 2)
+    signals, targets = [np.asarray(x)[:per] for x in signals], [np.asarray(t)[:per] for t in targets]
     top = float(max(np.max(np.abs(x)) for x in signals))
     if not (np.isfinite(top) and top > 0):
         return None
@@ -235,7 +242,7 @@ def _stop_fit(signals: list, targets: list, n: int) -> tuple[np.ndarray, np.ndar
             top * np.geomspace(lo, hi, n) for lo, hi in ((0.01, 0.8), (0.02, 0.5), (0.05, 0.3))]
         best = None
         for w0 in starts:
-            fit = scipy.optimize.least_squares(residual, np.log(w0), diff_step=1e-3, max_nfev=50 * n,
+            fit = scipy.optimize.least_squares(residual, np.log(w0), diff_step=1e-3, max_nfev=20 + 10 * n,
                                                bounds=(np.log(1e-4 * top), np.log(top)))
             cost = float(np.sum(fit.fun**2))
             if np.all(np.isfinite(fit.x)) and np.isfinite(cost) and (best is None or cost < best[0]):
@@ -283,19 +290,19 @@ def _electromechanical_from_charge(recs, m: float, n: int, capacitance: float | 
             "element_capacitances": 1.0 / inv, "breakaway_voltages": widths * inv}
 
 
-def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: float, predictor,
+def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: float, predictor, substeps: int,
                                          samples: int = 20000) -> dict | None:
-    r"""Start of the electromechanical model from records `(v_in, displacement, dt)` (those of the smallest step)
-    and a known `capacitance` $C$; `None` where it finds none. Quasi-statically $V_p = (k/T)x$ and $q = \beta x$,
-    $\beta = Ck/T + T$, so $V_{in} = (k/T)x + V_H(\beta x)$: a stop-operator model of the displacement
-    (`_stop_fit`: $V_{in} = a x + \sum_j c_j S_{r_j}[x]$, $a = k/T$, $c_j = \beta/C_j$, $r_j = C_j v_j/\beta$)
-    fixes everything but $T$ and the damping. These two, which set the resonance $\omega_0^2 = aT/m$ and
-    $\zeta$, are chosen by simulating the whole model (`predictor`, batched) for 16 resonances from $f_s/500$ to
-    $f_s/4$ and five $\zeta$ from 0.02 to 0.5, on the first `samples` samples of the records (each from rest):
-    the smallest squared error. (The linear ARX of the voltage-driven start cannot see this resonance: the
-    sticking elements stiffen the small-signal response, so it moves with the amplitude.) Measured on a numpy
-    plant (four elements, 0.1 % noise, no charge): the voltage-driven start had left the fit at 4.8× the noise;
-    this one has the resonance 0.6 % off, and the fit reaches 1.15× (1.25× on a held-out record)."""
+    r"""Start of the electromechanical model from records `(v_in, displacement, dt)` (those of the smallest step) and a
+    known `capacitance` $C$; `None` where it finds none. Quasi-statically $V_p = (k/T)x$ and $q = \beta x$, $\beta =
+    Ck/T + T$, so $V_{in} = (k/T)x + V_H(\beta x)$: a stop-operator model of the displacement (`_stop_fit`: $V_{in} = a
+    x + \sum_j c_j S_{r_j}[x]$, $a = k/T$, $c_j = \beta/C_j$, $r_j = C_j v_j/\beta$) fixes everything but $T$ and the
+    damping. These two, which set the resonance $\omega_0^2 = aT/m$ and $\zeta$, are chosen by simulating the whole
+    model (`predictor`, batched) for 16 resonances from $f_s/500$ to $f_s/4$ and five $\zeta$ from 0.02 to 0.5 (those
+    the `substeps` integrate stably), on `samples // len(recs)` samples of each record from where its drive first moves:
+    the smallest squared error. (The linear ARX of the voltage-driven start cannot see this resonance: the sticking
+    elements stiffen the small-signal response, so it moves with the amplitude.) Measured on a numpy plant (four
+    elements, 0.1 % noise, no charge): the voltage-driven start had left the fit at 4.8× the noise; this one has the
+    resonance 0.6 % off, and the fit reaches 1.15× (1.25× on a held-out record)."""
     v_all = [r[0] for r in recs]
     sign = 1.0 if chord(np.concatenate(v_all), np.concatenate([r[1] for r in recs])) >= 0 else -1.0
     x_all = [sign * r[1] for r in recs]
@@ -305,29 +312,48 @@ def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: fl
     widths, c = fit
     a, cj = float(c[0]), _live(c)
     dt = recs[0][2]
-    omegas = 2 * np.pi * np.geomspace(0.002, 0.25, 16) / dt
-    zetas = np.array([0.02, 0.05, 0.1, 0.2, 0.5])
-    t_em = sign * m * np.repeat(omegas, zetas.size) ** 2 / a
+    omega = np.repeat(2 * np.pi * np.geomspace(0.002, 0.25, 16) / dt, 5)
+    zeta = np.tile([0.02, 0.05, 0.1, 0.2, 0.5], 16)
+    # only what the fixed steps integrate stably, h (sqrt(k/m) + b/m) <= 3 (the simulation refuses the rest)
+    keep = omega * (1 + 2 * zeta) * dt / substeps <= 2.9
+    omega, zeta = omega[keep], zeta[keep]
+    t_em = sign * m * omega**2 / a
     k = a * np.abs(t_em)
     beta = capacitance * a + np.abs(t_em)
-    cands = {"b": 2 * np.tile(zetas, omegas.size) * np.sqrt(k * m), "k": k, "t_em": t_em,
-             "element_capacitances": beta[:, None] / cj, "breakaway_voltages": np.broadcast_to(widths * cj,
-                                                                                              (k.size, n))}
+    cands = {"b": 2 * zeta * np.sqrt(k * m), "k": k, "t_em": t_em, "element_capacitances": beta[:, None] / cj,
+             "breakaway_voltages": np.broadcast_to(widths * cj, (k.size, n))}
+    # each record's window starts where its drive first moves (at rest before: exact), all of one length (one
+    # compilation; a shorter record is padded with its last input and its error masked)
     per = max(samples // len(recs), 2)
+    sim = _batched_simulation(predictor, float(m), float(capacitance), float(dt), n)
     err = np.zeros(k.size)
     for v, x, _ in recs:
-        sim = _batched_simulation(predictor, float(m), float(capacitance), float(dt), n)
-        out = np.asarray(sim(*(jnp.asarray(np.asarray(cands[key], float)) for key in _EM_SCAN),
-                             jnp.asarray(v[:per])))
-        err += np.sum((out - x[:per]) ** 2, axis=1)
+        moved = np.flatnonzero(v != v[0])
+        i0 = max(int(moved[0]) - 1, 0) if v[0] == 0 and moved.size else 0
+        v, x = v[i0 : i0 + per], x[i0 : i0 + per]
+        drive = np.concatenate([v, np.full(per - v.size, v[-1])])
+        out = np.asarray(sim(*(jnp.asarray(np.asarray(cands[key], float)) for key in _EM_SCAN), jnp.asarray(drive)))
+        err += np.sum((out[:, : x.size] - x) ** 2, axis=1)
     err = np.where(np.isfinite(err), err, np.inf)
-    if not np.isfinite(np.min(err)):
-        return None
+    if not np.isfinite(np.min(err)) or np.max(err[np.isfinite(err)]) - np.min(err) <= 1e-12 * np.min(err):
+        return None  # no candidate, or the records cannot tell them apart
     i = int(np.argmin(err))
     return {key: np.asarray(cands[key])[i] for key in _EM_SCAN} | {"capacitance": capacitance}
 
 
 _EM_SCAN = ("b", "k", "t_em", "element_capacitances", "breakaway_voltages")
+
+
+def _optional_start(start, *args) -> dict | None:
+    """`start(*args)`, or `None` where it fails on the records (the caller falls back to the next start; an
+    interrupt still stops the fit)."""
+    try:
+        out = start(*args)
+    except (PiezojaxValueError, ValueError, ArithmeticError, np.linalg.LinAlgError, RuntimeError):
+        return None
+    if out is None or not all(np.all(np.isfinite(np.asarray(v, float))) for v in out.values()):
+        return None
+    return out
 
 
 @functools.cache
@@ -425,7 +451,8 @@ class ElectromechanicalKind(ModelKind):
                  e.dt) for e in data.dataset if e.has("displacement") and e.has("charge")]
         if both:
             dt = min(r[3] for r in both)
-            start = _electromechanical_from_charge([r for r in both if r[3] == dt], o["m"], n, o["capacitance"])
+            start = _optional_start(_electromechanical_from_charge, [r for r in both if r[3] == dt], o["m"], n,
+                                    o["capacitance"])
             if start is not None:
                 return start | {"t_em": np.r_[start["t_em"], np.zeros(o["degree"])]}
         recs = [(np.asarray(e.v_in, float), np.asarray(e["displacement"], float), e.dt)
@@ -436,7 +463,8 @@ class ElectromechanicalKind(ModelKind):
         dt = min(r[2] for r in recs)
         recs = [r for r in recs if r[2] == dt]
         if o["capacitance"] is not None:
-            start = _electromechanical_from_displacement(recs, o["m"], n, o["capacitance"], self.predictor(config))
+            start = _optional_start(_electromechanical_from_displacement, recs, o["m"], n, o["capacitance"],
+                                    self.predictor(config), o["substeps"])
             if start is not None:
                 return start | {"t_em": np.r_[start["t_em"], np.zeros(o["degree"])]}
         v = np.concatenate([r[0] for r in recs])

@@ -142,6 +142,8 @@ def plot_loops(result, experiment=0, prediction: dict | None = None, input_unit:
     """Measured and predicted target channels of one experiment against the drive `v_in` (the hysteresis loops),
     one panel per channel, in engineering units. Arguments and return as `plot_timeseries`; `input_unit`: the SI
     unit of what `v_in` holds (`"V"`, or `"N"` for a force-driven model such as the Bouc–Wen oscillator)."""
+    if not isinstance(input_unit, str) or not input_unit.strip():
+        raise PiezojaxValueError(f"`input_unit` must be a unit name such as 'V' or 'N', got {input_unit!r}")
     exp = _experiment(result, experiment)
     pred = prediction if prediction is not None else result.predict([exp], check_finite=False)[0]
     chans = [c for c in pred if exp.has(c)]

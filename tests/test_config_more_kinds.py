@@ -258,6 +258,30 @@ def test_electromechanical_command_line_on_an_independent_plant(tmp_path):
     assert metrics["displacement"]["rmse"] < 1.5 * nx, metrics
 
 
+def test_electromechanical_displacement_start_copes_with_quiet_records_and_one_substep():
+    """The displacement-only start scans resonances by simulation: with `substeps = 1` it keeps the candidates the
+    fixed steps integrate stably (it had crashed the fit on the others), and a record that starts with seconds at
+    rest is scanned from where its drive moves (it had scored every candidate 0 and picked the first)."""
+    from fitting._nonlinear_kinds import _electromechanical_from_displacement, electromechanical_predictor
+
+    fs, n = 1e4, 1500
+    t = np.arange(n) / fs
+    u = 40 * np.sin(2 * np.pi * 20 * t) * np.minimum(1, t / 0.01) + 10 * (t > 0.05)
+    truth = pj.ElectromechanicalActuator(m=0.01, b=5.0, k=1e5, capacitance=1e-6, t_em=[0.5],
+                                         element_capacitances=np.full(3, 2e-6), breakaway_voltages=[1.0, 2.5, 4.0])
+    x = np.asarray(truth.simulate(u, 1 / fs, substeps=8)["x"])
+    starts = {}
+    for name, (v, y), substeps in (("plain", (u, x), 8), ("one substep", (u, x), 1),
+                                   ("quiet", (np.r_[np.zeros(30000), u], np.r_[np.zeros(30000), x]), 8)):
+        start = _electromechanical_from_displacement([(v, y, 1 / fs)], 0.01, 3, 1e-6,
+                                                     electromechanical_predictor("linear", substeps), substeps)
+        assert start is not None, name
+        starts[name] = start
+    for name in ("one substep", "quiet"):  # measured: k 1.0e5 in all three; the quiet record had given k = 158
+        assert 0.3e5 < float(starts[name]["k"]) < 3e5, (name, starts[name]["k"])
+    assert float(starts["quiet"]["k"]) == pytest.approx(float(starts["plain"]["k"]), rel=1e-9)
+
+
 def test_model_kind_options_are_checked():
     with pytest.raises(PiezojaxValueError, match=r"\[model\] m: missing"):
         parse_config('[model]\nkind = "electromechanical"\n', "e.toml")

@@ -156,16 +156,7 @@ def test_a_failed_integration_raises_or_refuses_as_nan_per_member():
     t = np.arange(n) * dt
     np.testing.assert_allclose(np.asarray(ys[0]), 1 / (1 - 0.5 * t), rtol=1e-6)
     assert np.all(np.isnan(np.asarray(ys[1])))
-    # fixed steps have no step budget: the states that blow up are caught after the integration (they had come back
-    # as inf and NaN without a word), and refused as NaN per member in the refusal mode as well
-    def fixed(a):
-        return pj.simulate_ode(f, jnp.ones(()), jnp.zeros(n), dt, a, hold="zoh")
-
-    with pytest.raises(pj.PiezojaxValueError, match="fixed-step integration's states are not finite"):
-        fixed(5.0)
-    with pytest.raises(eqx.EquinoxRuntimeError, match="not finite"):
-        jax.block_until_ready(eqx.filter_jit(fixed)(jnp.asarray(5.0)))
-    with refusals_as_nan():
-        ys = jax.jit(jax.vmap(fixed))(jnp.array([0.5, 5.0]))
-    np.testing.assert_allclose(np.asarray(ys[0]), 1 / (1 - 0.5 * t), rtol=1e-4)
-    assert np.all(np.isnan(np.asarray(ys[1])))
+    # fixed steps have no step budget: the states that blow up come back as they are (a start's candidate scan and
+    # the plot of a failed fit rely on it), documented
+    ys = pj.simulate_ode(f, jnp.ones(()), jnp.zeros(n), dt, 5.0, hold="zoh")
+    assert np.isfinite(float(ys[1])) and not np.all(np.isfinite(np.asarray(ys)))

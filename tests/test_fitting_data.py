@@ -193,7 +193,7 @@ def test_save_experiment_unit_labels(tmp_path, rng):
     save_experiment(e, tmp_path / "f.h5", units={"v_in": "N"})
     with h5py.File(tmp_path / "f.h5", "r") as f:
         assert f["v_in"].attrs["units"] == "N" and f["displacement"].attrs["units"] == "m"
-    for bad in ({"charge": "C"}, {"v_in": ""}, {"v_in": 3}):
+    for bad in ({"charge": "C"}, {"v_in": ""}, {"v_in": 3}, "N", ["v_in"]):
         with pytest.raises(PiezojaxValueError, match="`units`"):
             save_experiment(e, tmp_path / "g.csv", units=bad)
     assert not (tmp_path / "g.csv").exists()

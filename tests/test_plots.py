@@ -67,6 +67,9 @@ def test_figures_carry_units_and_no_offsets(result):
     assert len(loops.axes[0].get_xticks()) <= 8  # MaxNLocator(6): no crowded ticks on triangle loops
     # a force-driven model (the Bouc–Wen oscillator's v_in holds newtons): its drive is labelled as such
     assert fitting.plot_loops(result, 1, input_unit="N").axes[0].get_xlabel() == "drive force [N]"
+    for bad in (3, ""):
+        with pytest.raises(PiezojaxValueError, match="`input_unit`"):
+            fitting.plot_loops(result, 1, input_unit=bad)
     par = result.plot("parameters")
     par.canvas.draw()
     assert "standard error [% of value]" in _labels(par)
