@@ -1,7 +1,7 @@
 r"""Benchmark: the joint calibration of an actuator model with `fitting.fit` against scipy + numba.
 
-Run: `python -m experiments.bench_calibration [--quick] [--method M] [--bounds-variant] [--max-steps N] [--progress]
-[--warm-cache]`
+Run: `python -m experiments.bench_calibration [--quick | --large] [--method M] [--bounds-variant] [--max-steps N]
+[--progress] [--warm-cache]`
 
 The model is `pj.Actuator(PrandtlIshlinskii(15 plays), KelvinVoigtCreep(2 lags, k0=None),
 StableTransferFunction(1, omega, zeta))` (parallel structure): the displacement is
@@ -10,6 +10,9 @@ $C[V] = \sum_j x_j/k_j$ with $x_{j,k+1} = a_j x_{j,k} + (1 - a_j) V_k$, $a_j = e
 second-order $G(s) = \omega^2/(s^2 + 2\zeta\omega s + \omega^2)$ discretised exactly (ZOH). The static gain of $G$
 is fixed at 1 (it is redundant with the weights and the creep compliances), leaving 37 free parameters:
 $w_0$, 15 weights, 15 thresholds, 2 stiffnesses, 2 time constants, $\omega$, $\zeta$.
+
+`--large` is the compass-scale problem: 22 plays (the same total weight and decay spread over them; 51 free
+parameters) and 8 experiments of 1e5 samples.
 
 Data: 8 synthetic experiments of 2e4 samples at 10 kHz (decaying sines of different frequencies and offsets,
 staircases, a random multi-level signal; 0..100 V) simulated by the true model with white noise of 0.1 % of the
@@ -175,12 +178,15 @@ def _softplus(x):
 # ---------------------------------------------------------------------------------------------------------------------
 
 
-def truth_parameters() -> dict:
-    i = np.arange(N_PLAYS)
+def truth_parameters(n_plays: int = N_PLAYS) -> dict:
+    """The true parameters; `n_plays` other than 15 spreads the same total play weight and decay over that many
+    plays (thresholds 3..60 V)."""
+    i = np.arange(n_plays)
+    scale = N_PLAYS / n_plays
     return dict(
         w0=0.05e-6,  # m/V
-        w=0.025e-6 * np.exp(-i / 6.0),
-        r=np.linspace(3.0, 60.0, N_PLAYS),  # V
+        w=0.025e-6 * scale * np.exp(-i * scale / 6.0),
+        r=np.linspace(3.0, 60.0, n_plays),  # V
         k=np.array([2.5e8, 1.5e8]),  # V/m: creep compliances 4e-9 and 6.7e-9 m/V
         tau=np.array([0.05, 0.6]),  # s
         omega=2 * np.pi * 400.0,  # rad/s
@@ -191,10 +197,11 @@ def truth_parameters() -> dict:
 def start_parameters(truth: dict, seed: int = 7) -> dict:
     rng = np.random.default_rng(seed)
     gaps = np.diff(truth["r"], prepend=0.0)
+    n_plays = gaps.size
     return dict(
         w0=truth["w0"] * 0.8,
-        w=truth["w"] * np.exp(0.3 * rng.standard_normal(N_PLAYS)),
-        r=np.cumsum(gaps * np.exp(0.3 * rng.standard_normal(N_PLAYS))),
+        w=truth["w"] * np.exp(0.3 * rng.standard_normal(n_plays)),
+        r=np.cumsum(gaps * np.exp(0.3 * rng.standard_normal(n_plays))),
         k=truth["k"] * np.exp(0.3 * rng.standard_normal(2)),
         tau=truth["tau"] * np.exp(0.3 * rng.standard_normal(2)),
         omega=truth["omega"] * 1.1,
@@ -289,7 +296,7 @@ def pack(p: dict) -> np.ndarray:
 
 
 def unpack(x: np.ndarray) -> dict:
-    n = N_PLAYS
+    n = (x.size - 7) // 2  # the plays: 2n + 7 parameters
     return dict(w0=x[0], w=x[1 : 1 + n], r=x[1 + n : 1 + 2 * n], k=x[1 + 2 * n : 3 + 2 * n],
                 tau=x[3 + 2 * n : 5 + 2 * n], omega=x[5 + 2 * n], zeta=x[6 + 2 * n])
 
@@ -311,17 +318,22 @@ def run(
     linear_solver: str = "cholesky",
     run_scipy: bool = True,
     method: str = "trust_region",
+    large: bool = False,
 ) -> dict:
-    """Run the benchmark; print the table and return the measured numbers as a dict."""
+    """Run the benchmark; print the table and return the measured numbers as a dict. `quick`: 4 experiments x 2500
+    samples; `large`: 8 x 1e5 samples and 22 plays (51 parameters); else 8 x 2e4 and 15 plays (37 parameters)."""
+    if quick and large:
+        raise ValueError("run: quick and large exclude each other")
     import jax
     import jax.numpy as jnp
     import scipy.optimize
 
     import fitting
 
-    n_exp, n = (4, 2500) if quick else (8, 20_000)
-    results: dict = {"n_exp": n_exp, "n": n}
-    truth = truth_parameters()
+    n_exp, n = (4, 2500) if quick else (8, 100_000) if large else (8, 20_000)
+    n_plays = 22 if large else N_PLAYS
+    results: dict = {"n_exp": n_exp, "n": n, "n_plays": n_plays}
+    truth = truth_parameters(n_plays)
     start = start_parameters(truth)
     v = input_signals(n_exp, n, DT)
 
@@ -336,7 +348,7 @@ def run(
     ds = fitting.Dataset(
         [fitting.Experiment.from_arrays(t=t, v_in=v[e], name=f"e{e}", displacement=y[e]) for e in range(n_exp)]
     )
-    print(f"calibration benchmark: {n_exp} experiments x {n} samples, PI({N_PLAYS}) + 2-lag creep + 2nd order, "
+    print(f"calibration benchmark: {n_exp} experiments x {n} samples, PI({n_plays}) + 2-lag creep + 2nd order, "
           f"noise {NOISE_FRACTION:.1%} of range")
 
     # --- numba model vs piezojax ----------------------------------------------------------------------------------
@@ -490,8 +502,8 @@ def run(
 
         lower = np.zeros(p_count)
         positive = np.ones(p_count, bool)
-        positive[1 + N_PLAYS : 1 + 2 * N_PLAYS] = False  # thresholds may reach 0
-        positive[1 : 1 + N_PLAYS] = False  # weights may reach 0
+        positive[1 + n_plays : 1 + 2 * n_plays] = False  # thresholds may reach 0
+        positive[1 : 1 + n_plays] = False  # weights may reach 0
         lower[positive] = 1e-6
         nb.calls = 0
         t0, c0 = time.perf_counter(), time.process_time()
@@ -540,6 +552,8 @@ def run(
     _line("one residual evaluation (jit)", f"{results['jax_residuals_s'] * 1e3:.1f} ms")
     _line("one residuals + Jacobian (engine, jit)", f"{results['jax_jacobian_s'] * 1e3:.1f} ms")
     _line("one linearisation J^T J, J^T r (engine, jit)", f"{results['normal_equations_s'] * 1e3:.1f} ms")
+    results["linearisation_over_residuals"] = results["normal_equations_s"] / results["jax_residuals_s"]
+    _line("linearisation / residual evaluation", f"{results['linearisation_over_residuals']:.1f}x")
     _line("engine wall per step (warm solve / steps)", f"{fr.seconds / max(fr.steps, 1) * 1e3:.1f} ms")
     if warm_run:
         _line("compile: warm-up fit with max_steps=1 (compile + 1 step), wall",
@@ -572,6 +586,7 @@ def _best(fn, repeats):
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="4 experiments x 2500 samples (for tests)")
+    parser.add_argument("--large", action="store_true", help="8 experiments x 1e5 samples, 22 plays (51 parameters)")
     parser.add_argument("--bounds-variant", action="store_true", help="also fit scipy on bounded physical parameters")
     parser.add_argument("--max-steps", type=int, default=None, help="engine steps (default 100, quick 60)")
     parser.add_argument("--progress", action="store_true", help="print the engine's progress on stderr")
@@ -596,11 +611,12 @@ def main(argv=None) -> dict:
     if args.cache_dir is not None:  # a child: one cold engine fit, its numbers as JSON on the last line
         import json
 
-        out = run(quick=args.quick, max_steps=args.max_steps, warm_run=False, run_scipy=False, method=args.method,
+        out = run(quick=args.quick, large=args.large, max_steps=args.max_steps, warm_run=False, run_scipy=False,
+                  method=args.method,
                   linear_solver=args.linear_solver)
         print(json.dumps({k: out[k] for k in ("jax_cold_wall_s", "jax_cost")}))
         return out
-    results = run(quick=args.quick, bounds_variant=args.bounds_variant, max_steps=args.max_steps,
+    results = run(quick=args.quick, large=args.large, bounds_variant=args.bounds_variant, max_steps=args.max_steps,
                   progress=args.progress, linear_solver=args.linear_solver, run_scipy=not args.no_scipy,
                   method=args.method)
     if args.warm_cache:
@@ -618,7 +634,7 @@ def _warm_cache_runs(args, scipy_wall: float | None) -> dict:
     with tempfile.TemporaryDirectory() as cache:
         cmd = [sys.executable, "-m", "experiments.bench_calibration", "--cache-dir", cache, "--method", args.method,
                "--linear-solver", args.linear_solver]
-        cmd += ["--quick"] if args.quick else []
+        cmd += ["--quick"] if args.quick else ["--large"] if args.large else []
         cmd += ["--max-steps", str(args.max_steps)] if args.max_steps is not None else []
         for _ in range(2):
             done = subprocess.run(cmd, capture_output=True, text=True, check=True)
