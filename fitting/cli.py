@@ -351,7 +351,7 @@ def _setup_jax(figures: bool = False) -> None:
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            pj.enable_fast_cpu_scans()
+            pj.enable_fast_cpu_scans()  # also retains freed memory: `fit` releases it for long records
         jax.config.update("jax_enable_x64", True)
         pj.enable_compilation_cache()  # a second run of the same shapes loads its programs ($PIEZOJAX_CACHE_DIR)
 
@@ -613,6 +613,26 @@ def _check_memory(config, dataset, num_free: int) -> None:
                      "resample the records, split long ones, or fit fewer parameters")
 
 
+# the longest record's Jacobian [bytes] above which `fit` returns the freed memory the process retains to the system:
+# glibc's threshold for mapping a block apart (`pj.retain_freed_memory`), above which the largest buffers bypass the
+# retained heaps anyway
+RETAIN_MEMORY_BELOW = 32 * 2**20
+
+
+def _release_memory_if_long(config, dataset, num_free: int) -> bool:
+    """`pj.release_freed_memory()` when the longest record's Jacobian takes more than `RETAIN_MEMORY_BELOW`: the set-up
+    retained freed memory (`pj.enable_fast_cpu_scans`), which pays on short records and costs on long ones. Measured
+    on 2 cores, each case with and without retaining: the 150 V README fit (35000 samples, 29 parameters) took
+    15.6-17.9 s of steps against 20.7-21.7 s, at a peak of 1.01 against 0.90 GB; a PI + series creep + resonance
+    fit (24 parameters) gained nothing on records of 2e5 samples (48.1 against 46.7 s) and 1e6 (59.8 against
+    59.0 s), and its peak rose from 1.32 to 1.64 GB and from 1.70 to 2.24 GB; released here, 1.60-1.62 GB at 1e6
+    (the whole command 101-106 s against 95 s retained or never retained). Returns whether it released."""
+    import piezojax as pj
+
+    m = max(e.n for e in dataset) * max(1, len(config.outputs))
+    return 8 * m * num_free > RETAIN_MEMORY_BELOW and pj.release_freed_memory()
+
+
 def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
     """More fits from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the fit
     left without weight, above the largest voltage, or on the threshold of another, placed where the residual
@@ -747,6 +767,7 @@ def _cmd_fit(args) -> int:
         free = config.fit_free(targets)
         num_free = _num_free(config.build(None), free)
         _check_memory(config, dataset, num_free)
+        _release_memory_if_long(config, dataset, num_free)
         _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}",
               quiet)
         _info("initial values from the data", quiet)

@@ -29,6 +29,7 @@ from ._circuits.transimpedance import TransimpedanceCircuit as TransimpedanceCir
 from ._config import (
     enable_compilation_cache as enable_compilation_cache,
     enable_fast_cpu_scans as enable_fast_cpu_scans,
+    release_freed_memory as release_freed_memory,
     retain_freed_memory as retain_freed_memory,
     set_parallel_scans as set_parallel_scans,
 )
