@@ -623,7 +623,7 @@ def _release_memory_if_long(config, dataset, num_free: int) -> bool:
     """`pj.release_freed_memory()` when the longest record's Jacobian takes more than `RETAIN_MEMORY_BELOW`: the set-up
     retained freed memory (`pj.enable_fast_cpu_scans`), which pays on short records and costs on long ones. Measured
     on 2 cores, each case with and without retaining: the 150 V README fit (35000 samples, 29 parameters) took
-    15.6-17.9 s of steps against 20.7-21.7 s, at a peak of 1.01 against 0.90 GB; a PI + series creep + resonance
+    15.5-17.9 s of steps against 20.7-21.7 s, at a peak of 1.01 against 0.90 GB; a PI + series creep + resonance
     fit (24 parameters) gained nothing on records of 2e5 samples (48.1 against 46.7 s) and 1e6 (59.8 against
     59.0 s), and its peak rose from 1.32 to 1.64 GB and from 1.70 to 2.24 GB; released here, 1.60-1.62 GB at 1e6
     (the whole command 101-106 s against 95 s retained or never retained). Returns whether it released."""
