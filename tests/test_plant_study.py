@@ -12,7 +12,7 @@ import fitting
 import piezojax as pj
 from experiments import plant_study as ps
 from fitting._config import StartWarning, _start_error, parse_config
-from fitting._kinds import BoucWenKind, StartData
+from fitting._kinds import BoucWenKind, StartData, _bouc_wen_grid
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +104,19 @@ def test_bouc_wen_grid_start():
     err = np.asarray(model(jax.numpy.asarray(v))) - y
     assert np.sqrt(np.mean(err**2)) < 0.03 * np.ptp(y)
     assert s["A"] > 0 and s["beta"] + s["gamma"] > 0
+
+
+def test_bouc_wen_grid_in_blocks():
+    """The grid start's operator outputs, stepped block by block (a padded last block) and kept at a subset of
+    rows, equal the whole record's outputs at those rows."""
+    v = ps.signals(0.5)["train_triangles"][:3001]
+    beta, gamma = np.array([0.01, 0.03, 0.02]), np.array([0.005, -0.01, 0.0])
+    whole = np.stack([np.asarray(pj.BoucWen(1.0, b, g, output="z")(jax.numpy.asarray(v))) for b, g in zip(beta, gamma)])
+    rows = np.sort(np.random.default_rng(0).choice(v.size, 700, replace=False))
+    for k in (slice(None), rows):
+        z = _bouc_wen_grid(jax.numpy.asarray(beta), jax.numpy.asarray(gamma), v, k, block=512)
+        np.testing.assert_allclose(z, whole[:, k], rtol=1e-12, atol=1e-12 * np.max(np.abs(whole)))
+    assert np.ptp(whole) > 0
 
 
 def test_failed_start_falls_back_with_warning(pi_records, monkeypatch):
