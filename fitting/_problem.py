@@ -237,15 +237,18 @@ class ProblemCore(eqx.Module):
                 def directions(e):
                     return jax.vmap(lambda d: jax.jvp(res, (u,), (d,)), out_axes=(None, 0))(e)
 
-                q = tangent_block(sum(int(masks[c].shape[-1]) for c in grp.targets), p, u.dtype.itemsize)
+                m_e = sum(int(masks[c].shape[-1]) for c in grp.targets)
+                q = tangent_block(m_e, p, u.dtype.itemsize)
                 if q >= p:
                     r, jt = directions(eye)
                     return r, matmul(jt, r), matmul(jt, jt.T)
-                # blocks of q directions (zero directions pad the last: zero rows of J^T, cut from g and H)
+                # blocks of q directions (zero directions pad the last: zero rows of J^T, cut from g and H); the
+                # residuals, the same in every block, are carried rather than stacked (stacked, they took as much
+                # memory as J^T itself one direction at a time: 208 MB of a 2e6-residual linearisation's 1056)
                 nb = -(-p // q)
                 blocks = jnp.concatenate([eye, jnp.zeros((nb * q - p, p), u.dtype)]).reshape(nb, q, p)
-                r, jt = jax.lax.map(directions, blocks)
-                r, jt = r[0], jt.reshape(nb * q, -1)
+                r, jt = jax.lax.scan(lambda _, e: directions(e), jnp.zeros((m_e,), u.dtype), blocks)
+                jt = jt.reshape(nb * q, -1)
                 return r, matmul(jt, r)[:p], matmul(jt, jt.T)[:p, :p]
 
             xs = (d.t, d.v_in, d.channels, grp.targets, grp.masks)

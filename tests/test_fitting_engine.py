@@ -75,19 +75,32 @@ def _two_groups():
     return model, ds, free
 
 
-def test_normal_equations_equal_the_full_jacobian_for_any_chunk():
+def test_normal_equations_equal_the_full_jacobian_for_any_chunk(monkeypatch):
     # chunks of 1, 2 and all experiments
     model, ds, free = _two_groups()
     ref = fitting.Problem(model, ds, free=free)
     assert len(ref.core.groups) == 2
     u = ref.u0 * 1.02
     r, jt = (np.asarray(x) for x in ref.residuals_and_jacobian(u))
-    for chunk in (None, 1, 2):
-        prob = fitting.Problem(model, ds, free=free, jacobian_chunk=chunk)
-        rn, g, h = (np.asarray(x) for x in prob.normal_equations(u))
+
+    def check(normal_equations):
+        rn, g, h = (np.asarray(x) for x in normal_equations(u))
         np.testing.assert_allclose(rn, r, rtol=0, atol=1e-14)
         np.testing.assert_allclose(g, jt @ r, rtol=1e-10, atol=1e-12 * np.abs(jt @ r).max())
         np.testing.assert_allclose(h, jt @ jt.T, rtol=1e-10, atol=1e-12 * np.abs(h).max())
+
+    for chunk in (None, 1, 2):
+        check(fitting.Problem(model, ds, free=free, jacobian_chunk=chunk).normal_equations)
+    # the directions of a long record in blocks (`tangent_block`), the last one padded with zero directions: one
+    # direction at a time in both groups, then 4 of the 6 at a time in the first group and fewer in the second
+    m = [sum(int(k.shape[-1]) for k in grp.masks.values()) for grp in ref.core.groups]
+    p = u.size
+    for budget in (1, 4 * 8 * m[0]):
+        monkeypatch.setattr(fitting._problem, "_TANGENT_BUDGET", budget)
+        blocks = [fitting._problem.tangent_block(n, p) for n in m]
+        assert blocks == ([1, 1] if budget == 1 else [4, 4 * m[0] // m[1]]) and max(blocks) < p
+        # traced anew (a new function), under the patched budget
+        check(lambda v: eqx.filter_jit(lambda c, x: c.normal_equations(x))(ref.core, v))
 
     # the results' metrics come from the residuals unweighted: equal to the simulated predictions' errors
     errors, preds = ref.experiment_errors(r), ref.experiment_predictions(u)
