@@ -245,7 +245,7 @@ def _records(dataset):
 
 def _design(v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray) -> np.ndarray:
     """Design matrix `[v, P_r[v], L_tau[v]]` of one record, shape `(N, 1 + n + m)`, filled in place (the plays 16 at
-    a time: a long record's dense design is the start's largest array, and is not copied)."""
+    a time, and not copied: the compact design of `cold_start_actuator`; its dense grid is a `_LazyDesign`)."""
     n = thresholds.size
     out = np.empty((v.size, 1 + n + taus.size))
     out[:, 0] = v
@@ -255,16 +255,35 @@ def _design(v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray) 
     return out
 
 
+class _LazyDesign:
+    """`_design(v, dt, thresholds, taus)` never held whole: its columns are made again each time they are asked for,
+    `v`, then 16 plays at a time, then the lags (`blocks`). For the dense grid of `cold_start_actuator`, whose
+    design on a 1e6-sample record (97 columns: 776 MB) was the start's largest array; it is read once per
+    dynamics iteration, and making it again costs ~2.6 s per read there."""
+
+    def __init__(self, v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray):
+        self.v, self.dt, self.thresholds, self.taus = v, dt, thresholds, taus
+
+    def blocks(self):
+        yield self.v[:, None]
+        for j in range(0, self.thresholds.size, 16):
+            yield _play_columns(self.v, self.thresholds[j : j + 16])
+        if self.taus.size:
+            yield lag_columns(self.v, self.dt, self.taus)
+
+
 def _through(designs, recs, omega, zeta, rows) -> np.ndarray:
-    """Every record's design columns passed through the dynamics (if identified; whole records, a few columns at a
-    time), at the least-squares rows `rows` (`row_subset`), stacked over records."""
+    """Every record's design columns (an array, or a `_LazyDesign`) passed through the dynamics (if identified;
+    whole records, a few columns at a time), at the least-squares rows `rows` (`row_subset`), stacked over
+    records."""
     out = []
     for a, (_, _, dt), keep in zip(designs, recs, rows):
-        if omega is None:
+        if omega is None and not isinstance(a, _LazyDesign):
             out.append(a[keep])
-        else:
-            out.append(np.concatenate([filter_pairs(a[:, j : j + 16], dt, omega, zeta)[keep]
-                                       for j in range(0, a.shape[1], 16)], axis=1))
+            continue
+        blocks = a.blocks() if isinstance(a, _LazyDesign) else (a[:, j : j + 16] for j in range(0, a.shape[1], 16))
+        out.append(np.concatenate([(x if omega is None else filter_pairs(x, dt, omega, zeta))[keep]
+                                   for x in blocks], axis=1))
     return np.concatenate(out)
 
 
@@ -414,7 +433,7 @@ def cold_start_actuator(
     n_grid = grid_factor * n_plays
     r_grid = vmax * np.arange(1, n_grid + 1) / (n_grid + 1)
     tau_grid = np.geomspace(tau_lo, tau_hi, grid_factor * creep_order) if creep_order else np.zeros(0)
-    dense_raw = [_design(v, dt, r_grid, tau_grid) for v, _, dt in recs]
+    dense_raw = [_LazyDesign(v, dt, r_grid, tau_grid) for v, _, dt in recs]
 
     def gains(raw, omega, zeta):
         return _nnls_offset(_through(raw, recs, omega, zeta, rows), y_all)
