@@ -94,3 +94,18 @@ def test_noisy_fit_predicts_held_out_signal_at_noise_level(train_signal):
     # and the prediction of the noiseless output is well below the noise
     clean_nrmse = float(jnp.sqrt(jnp.mean((fitted(held_out) - y_test_clean) ** 2))) / test_range
     assert clean_nrmse < 0.5 * noise_nrmse
+
+
+def test_cold_start_in_groups_of_plays_is_the_same(train_signal, monkeypatch):
+    """A long record's dense grid of plays is formed a few plays at a time (within a memory budget), each group cut
+    to the least-squares rows: the same start, bit for bit, as all plays at once."""
+    from piezojax._hysteresis import initialise
+
+    v = np.asarray(train_signal)
+    y = np.asarray(truth()(train_signal))
+    whole = pj.pi_cold_start(v, y, N_PLAYS, max_rows=500)
+    # 7 plays per group: the 120-threshold grid in 17 groups, the last one shorter
+    monkeypatch.setattr(initialise, "_PLAYS_BUDGET", 7 * 8 * v.size)
+    grouped = pj.pi_cold_start(v, y, N_PLAYS, max_rows=500)
+    for a, b in zip(jax.tree_util.tree_leaves(whole), jax.tree_util.tree_leaves(grouped)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -104,12 +104,23 @@ def _plays(play: PlayOperator, v):
     return play(v)
 
 
+# the play outputs of one record formed at once, at most (before they are cut to the least-squares rows)
+_PLAYS_BUDGET = 128 * 2**20
+
+
 def _design(records, thresholds, max_rows: int | None = None):
     """Rows [v, P_r1[v], ..., P_rn[v]] of every record (demagnetised start), and the outputs: every sample, or the
-    `row_subset` of at most `max_rows` (the plays run over each whole record)."""
-    play = PlayOperator(jnp.asarray(thresholds))
+    `row_subset` of at most `max_rows` (the plays run over each whole record, as many at a time as fit in 128 MiB,
+    each group cut to the rows at once: a 1e6-sample record's 64 plays at once held 512 MB)."""
+    thresholds = jnp.asarray(thresholds)
     keep = row_subset([v.size for v, _ in records], max_rows)
-    blocks = [np.column_stack([v[k], np.asarray(_plays(play, jnp.asarray(v)))[k]]) for (v, _), k in zip(records, keep)]
+    blocks = []
+    for (v, _), k in zip(records, keep):
+        step = max(1, _PLAYS_BUDGET // (8 * max(1, v.size)))
+        vj = jnp.asarray(v)
+        plays = [np.asarray(_plays(PlayOperator(thresholds[j : j + step]), vj))[k]
+                 for j in range(0, thresholds.shape[0], step)]
+        blocks.append(np.column_stack([v[k], *plays]))
     return np.concatenate(blocks), np.concatenate([y[k] for (_, y), k in zip(records, keep)])
 
 
