@@ -119,6 +119,22 @@ def test_bouc_wen_grid_in_blocks():
     assert np.ptp(whole) > 0
 
 
+def test_lazy_dense_design_equals_the_design():
+    """The cold start's dense design, made block by block each time it is read (`_LazyDesign`), passes through the
+    dynamics to the same columns at the least-squares rows as the whole design, bit for bit."""
+    from fitting._initialise import _design, _LazyDesign, _through
+
+    sig = ps.signals(0.5)
+    recs = [(sig[name][:n], None, ps.DT) for name, n in (("train_triangles", 2500), ("train_steps", 1800))]
+    r, taus = np.linspace(1.0, 90.0, 37), np.geomspace(5 * ps.DT, 2.0, 5)
+    rows = [np.sort(np.random.default_rng(i).choice(v.size, 600, replace=False)) for i, (v, _, _) in enumerate(recs)]
+    for omega, zeta in ((None, None), (np.array([2 * np.pi * 300.0]), np.array([0.1]))):
+        whole = _through([_design(v, dt, r, taus) for v, _, dt in recs], recs, omega, zeta, rows)
+        lazy = _through([_LazyDesign(v, dt, r, taus) for v, _, dt in recs], recs, omega, zeta, rows)
+        assert whole.shape == (1200, 1 + r.size + taus.size)
+        np.testing.assert_array_equal(lazy, whole)
+
+
 def test_failed_start_falls_back_with_warning(pi_records, monkeypatch):
     """A start heuristic that raises on usable data gives the placeholder values with a StartWarning; the build
     does not fail."""
