@@ -247,7 +247,8 @@ class ProblemCore(eqx.Module):
                 # memory as J^T itself one direction at a time: 208 MB of a 2e6-residual linearisation's 1056)
                 nb = -(-p // q)
                 blocks = jnp.concatenate([eye, jnp.zeros((nb * q - p, p), u.dtype)]).reshape(nb, q, p)
-                r, jt = jax.lax.scan(lambda _, e: directions(e), jnp.zeros((m_e,), u.dtype), blocks)
+                shape = jax.eval_shape(res, u)
+                r, jt = jax.lax.scan(lambda _, e: directions(e), jnp.zeros(shape.shape, shape.dtype), blocks)
                 jt = jt.reshape(nb * q, -1)
                 return r, matmul(jt, r)[:p], matmul(jt, jt.T)[:p, :p]
 
