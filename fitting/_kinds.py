@@ -920,10 +920,17 @@ class PreisachKind(BlockKind):
         vmax = 1.05 * data.max_input()
         rng = o["range"] if o["range"] is not None else (-vmax, vmax)
         ones = pj.Preisach.uniform(rng[0], rng[1], o["levels"], smoothing=o["smoothing"])
-        relays = jax.vmap(lambda m: eqx.tree_at(lambda p: p.mu, ones, m))(jnp.eye(ones.mu.shape[0]))
-        cols = np.concatenate([np.asarray(jax.vmap(lambda p, v=v: p(jnp.asarray(v)))(relays)).T
-                               for v, _, _ in data.records()])
-        y = data.outputs()
+        eye = np.eye(ones.mu.shape[0])
+        parts = []
+        for (v, _, _), k in zip(data.records(), data.rows()):
+            # the relays' outputs, as many at a time as fit in the budget, each group cut to the rows at once (all
+            # 55 relays of 10 levels on a 1e6-sample record at once: a 1.25 GB start)
+            step = max(1, _RELAYS_BUDGET // (8 * v.size))
+            vj = jnp.asarray(v)
+            parts.append(np.concatenate([np.asarray(_relay_outputs(ones, jnp.asarray(eye[j : j + step]), vj))[:, k].T
+                                         for j in range(0, eye.shape[0], step)], axis=1))
+        cols = np.concatenate(parts)
+        y = data.sampled_outputs()
         lam = 1e-8 * float(np.sum(cols**2)) / max(cols.shape[1], 1)
         mu = np.linalg.solve(cols.T @ cols + lam * np.eye(cols.shape[1]), cols.T @ y)
         return {"mu": mu, "range": rng}
@@ -952,6 +959,16 @@ def _creep_gain(data: StartData) -> float:
     the voltage ahead of the dynamics' gain), else the static gain from volts to the output."""
     series = data.config.creep_structure == "series" and not data.config.hysteresis_kind.empty
     return 1.0 if data.unit_drive or series else data.static_gain()
+
+
+# the relay outputs of one record the Preisach start forms at once, at most
+_RELAYS_BUDGET = 128 * 2**20
+
+
+@eqx.filter_jit
+def _relay_outputs(ones, masks, v):
+    """The output of each single relay of the Preisach operator `ones` (one row of `masks` as its `mu`) over `v`."""
+    return jax.vmap(lambda m: eqx.tree_at(lambda p: p.mu, ones, m)(v))(masks)
 
 
 class KelvinVoigtKind(BlockKind):

@@ -143,8 +143,9 @@ def test_generic_config_code_names_no_kind():
 # ---------------------------------------------------------------------------------------------- Preisach
 
 
-def test_preisach_kind_starts_at_the_truth_on_its_own_grid():
-    """The relay weights enter linearly: on the grid the start uses, the linear least-squares start is exact."""
+def test_preisach_kind_starts_at_the_truth_on_its_own_grid(monkeypatch):
+    """The relay weights enter linearly: on the grid the start uses, the linear least-squares start is exact; the
+    relays' outputs formed a few at a time (a long record's memory budget) give the same start."""
     vmax = 1.05 * np.max(np.abs(V))
     rng = np.random.default_rng(0)
     grid = pj.Preisach.uniform(-vmax, vmax, 5)
@@ -157,6 +158,9 @@ def test_preisach_kind_starts_at_the_truth_on_its_own_grid():
     start = pj.unwrap(cfg.build(ds))
     err = np.asarray(start.simulate(jnp.asarray(V), DT).displacement) - y
     assert np.sqrt(np.mean(err**2)) < 1e-6 * np.ptp(y)
+    monkeypatch.setattr("fitting._kinds._RELAYS_BUDGET", 4 * 8 * V.size)  # 15 relays: groups of 4, 4, 4, 3
+    grouped = pj.unwrap(cfg.build(ds))
+    np.testing.assert_array_equal(np.asarray(grouped.hysteresis.mu), np.asarray(start.hysteresis.mu))
     assert pj.unwrap(cfg.build(None)).hysteresis.mu.shape == (15,)
     with pytest.raises(pj.PiezojaxValueError, match=r"\[hysteresis\] mu: must have 15 entries"):
         parse_config('[hysteresis]\nkind = "preisach"\nlevels = 5\nmu = [1.0]\n', "p.toml")
