@@ -257,7 +257,7 @@ def _design(v: np.ndarray, dt: float, thresholds: np.ndarray, taus: np.ndarray) 
 
 class _LazyDesign:
     """`_design(v, dt, thresholds, taus)` never held whole: its columns are made again each time they are asked for,
-    `v`, then 16 plays at a time, then the lags (`blocks`). For the dense grid of `cold_start_actuator`, whose
+    `v`, then 16 plays at a time, then 16 lags at a time (`blocks`). For the dense grid of `cold_start_actuator`, whose
     design on a 1e6-sample record (97 columns: 776 MB) was the start's largest array; it is read once per
     dynamics iteration, and making it again costs ~2.6 s per read there."""
 
@@ -268,8 +268,8 @@ class _LazyDesign:
         yield self.v[:, None]
         for j in range(0, self.thresholds.size, 16):
             yield _play_columns(self.v, self.thresholds[j : j + 16])
-        if self.taus.size:
-            yield lag_columns(self.v, self.dt, self.taus)
+        for j in range(0, self.taus.size, 16):
+            yield lag_columns(self.v, self.dt, self.taus[j : j + 16])
 
 
 def _through(designs, recs, omega, zeta, rows) -> np.ndarray:

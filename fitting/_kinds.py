@@ -800,8 +800,8 @@ def _bouc_wen_grid(beta, gamma, v, rows, block: int = 2**16) -> np.ndarray:
     was the start's memory peak (96 pairs on a 1e6-sample record: 768 MB)."""
     v = np.asarray(v, float)
     n = v.size
-    block = min(block, n)
-    # the last block padded with the last value: dv = 0 leaves z unchanged
+    block = max(1, min(block, n))
+    # the last block padded to the block's length (one compiled shape; its padded samples are never kept)
     vp = np.concatenate([v, np.full(-n % block, v[-1])])
     keep = np.arange(n)[rows]
     state = _bouc_wen_init(beta, gamma)
@@ -925,7 +925,7 @@ class PreisachKind(BlockKind):
         for (v, _, _), k in zip(data.records(), data.rows()):
             # the relays' outputs, as many at a time as fit in the budget, each group cut to the rows at once (all
             # 55 relays of 10 levels on a 1e6-sample record at once: a 1.25 GB start)
-            step = max(1, _RELAYS_BUDGET // (8 * v.size))
+            step = max(1, _RELAYS_BUDGET // (8 * max(1, v.size)))
             vj = jnp.asarray(v)
             parts.append(np.concatenate([np.asarray(_relay_outputs(ones, jnp.asarray(eye[j : j + step]), vj))[:, k].T
                                          for j in range(0, eye.shape[0], step)], axis=1))

@@ -95,12 +95,14 @@ def test_normal_equations_equal_the_full_jacobian_for_any_chunk(monkeypatch):
     # direction at a time in both groups, then 4 of the 6 at a time in the first group and fewer in the second
     m = [sum(int(k.shape[-1]) for k in grp.masks.values()) for grp in ref.core.groups]
     p = u.size
+    chunked = fitting.Problem(model, ds, free=free, jacobian_chunk=2)  # the blocks under `vmap` over experiments
     for budget in (1, 4 * 8 * m[0]):
         monkeypatch.setattr(fitting._problem, "_TANGENT_BUDGET", budget)
         blocks = [fitting._problem.tangent_block(n, p) for n in m]
         assert blocks == ([1, 1] if budget == 1 else [4, 4 * m[0] // m[1]]) and max(blocks) < p
-        # traced anew (a new function), under the patched budget
-        check(lambda v: eqx.filter_jit(lambda c, x: c.normal_equations(x))(ref.core, v))
+        for prob in (ref, chunked):
+            # traced anew (a new function), under the patched budget
+            check(lambda v, c=prob.core: eqx.filter_jit(lambda c, x: c.normal_equations(x))(c, v))
 
     # the results' metrics come from the residuals unweighted: equal to the simulated predictions' errors
     errors, preds = ref.experiment_errors(r), ref.experiment_predictions(u)

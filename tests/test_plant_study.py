@@ -126,7 +126,7 @@ def test_lazy_dense_design_equals_the_design():
 
     sig = ps.signals(0.5)
     recs = [(sig[name][:n], None, ps.DT) for name, n in (("train_triangles", 2500), ("train_steps", 1800))]
-    r, taus = np.linspace(1.0, 90.0, 37), np.geomspace(5 * ps.DT, 2.0, 5)
+    r, taus = np.linspace(1.0, 90.0, 37), np.geomspace(5 * ps.DT, 2.0, 21)  # 3 groups of plays, 2 of lags
     rows = [np.sort(np.random.default_rng(i).choice(v.size, 600, replace=False)) for i, (v, _, _) in enumerate(recs)]
     for omega, zeta in ((None, None), (np.array([2 * np.pi * 300.0]), np.array([0.1]))):
         whole = _through([_design(v, dt, r, taus) for v, _, dt in recs], recs, omega, zeta, rows)
