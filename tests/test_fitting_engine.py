@@ -275,6 +275,48 @@ def test_a_trial_the_model_refuses_is_a_failed_trial(method):
     assert res.values[0] == pytest.approx(1.0, abs=5 * res.std_errors[0])
 
 
+@pytest.mark.parametrize("method", ["levenberg_marquardt", "trust_region"])
+def test_an_accepted_point_with_a_nonfinite_jacobian_is_undone(method):
+    # the model's derivative is NaN at the first point the clean fit accepts (as d exp(-dt/tau)/d tau at a time
+    # constant stepped to 1e-249 s): that step is undone and counted as refused, and the fit goes on to the truth
+    # instead of failing at that point
+    class Gain(eqx.Module):
+        a: jax.Array
+
+    def problem(bad_at=None):
+        @jax.custom_jvp
+        def through(a):
+            return a
+
+        @through.defjvp
+        def _through_jvp(primals, tangents):
+            (a,), (da,) = primals, tangents
+            bad = jnp.zeros((), bool) if bad_at is None else jnp.abs(a - bad_at) <= 1e-9 * abs(bad_at)
+            return a, jnp.where(bad, jnp.nan, 1.0) * da
+
+        def predict(m, d):
+            return {"displacement": jnp.exp(through(m.a)) * d.v_in}
+
+        return fitting.Problem(Gain(jnp.asarray(-1.0)), ds, predictor=fitting.Predictor(predict, ("displacement",)))
+
+    t = np.arange(400) * DT
+    v = 10 * np.sin(2 * np.pi * 5 * t)
+    rng = np.random.default_rng(0)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, name="g",
+                                                         displacement=np.e * v + 1e-3 * rng.standard_normal(t.size))])
+    clean = problem()
+    first = next(r for k in range(1, 10) if (r := fitting.solve(clean, method=method, max_steps=k,
+                                                                progress=False)).accepted_steps == 1)
+    a1 = float(first.values[0])
+    assert abs(a1 - 1.0) > 1e-3  # the first accepted point is not yet the optimum
+    res = fitting.solve(problem(bad_at=a1), method=method, progress=False)
+    ref = fitting.solve(clean, method=method, progress=False)
+    assert res.success, res.reason
+    assert res.code != "nonfinite" and res.steps > ref.steps
+    assert res.values[0] == pytest.approx(ref.values[0], abs=1e-6 * ref.std_errors[0])
+    assert a1 not in [float(x) for x in res.values]
+
+
 def test_padding_equals_separate_problems(data):
     model = _model()
     joint = fitting.Problem(model, data, free=["hysteresis.weights"], scales="value")
