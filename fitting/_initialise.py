@@ -278,9 +278,6 @@ def _through(designs, recs, omega, zeta, rows) -> np.ndarray:
     records."""
     out = []
     for a, (_, _, dt), keep in zip(designs, recs, rows):
-        if omega is None and not isinstance(a, _LazyDesign):
-            out.append(a[keep])
-            continue
         blocks = a.blocks() if isinstance(a, _LazyDesign) else (a[:, j : j + 16] for j in range(0, a.shape[1], 16))
         out.append(np.concatenate([(x if omega is None else filter_pairs(x, dt, omega, zeta))[keep]
                                    for x in blocks], axis=1))

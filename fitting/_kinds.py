@@ -38,7 +38,7 @@ import numpy as np
 
 import piezojax as pj
 from piezojax._checks import PiezojaxValueError
-from piezojax._hysteresis.initialise import MAX_ROWS, row_subset
+from piezojax._hysteresis.initialise import MAX_ROWS, columns_at_rows, row_subset
 
 # Upper bounds on the sizes a CONFIG may ask for, checked before any work: beyond them the initialisation (dense
 # NNLS over plays x samples) or the fit's memory grows past what the method is meant for.
@@ -920,16 +920,11 @@ class PreisachKind(BlockKind):
         vmax = 1.05 * data.max_input()
         rng = o["range"] if o["range"] is not None else (-vmax, vmax)
         ones = pj.Preisach.uniform(rng[0], rng[1], o["levels"], smoothing=o["smoothing"])
-        eye = np.eye(ones.mu.shape[0])
-        parts = []
-        for (v, _, _), k in zip(data.records(), data.rows()):
-            # the relays' outputs, as many at a time as fit in the budget, each group cut to the rows at once (all
-            # 55 relays of 10 levels on a 1e6-sample record at once: a 1.25 GB start)
-            step = max(1, _RELAYS_BUDGET // (8 * max(1, v.size)))
-            vj = jnp.asarray(v)
-            parts.append(np.concatenate([np.asarray(_relay_outputs(ones, jnp.asarray(eye[j : j + step]), vj))[:, k].T
-                                         for j in range(0, eye.shape[0], step)], axis=1))
-        cols = np.concatenate(parts)
+        eye = jnp.eye(ones.mu.shape[0])
+        # the relays' outputs a few at a time (all 55 relays of 10 levels on a 1e6-sample record: a 1.25 GB start)
+        cols = np.concatenate([columns_at_rows(lambda j, e, vj=jnp.asarray(v): _relay_outputs(ones, eye[j:e], vj).T,
+                                               eye.shape[0], v.size, k)
+                               for (v, _, _), k in zip(data.records(), data.rows())])
         y = data.sampled_outputs()
         lam = 1e-8 * float(np.sum(cols**2)) / max(cols.shape[1], 1)
         mu = np.linalg.solve(cols.T @ cols + lam * np.eye(cols.shape[1]), cols.T @ y)
@@ -959,10 +954,6 @@ def _creep_gain(data: StartData) -> float:
     the voltage ahead of the dynamics' gain), else the static gain from volts to the output."""
     series = data.config.creep_structure == "series" and not data.config.hysteresis_kind.empty
     return 1.0 if data.unit_drive or series else data.static_gain()
-
-
-# the relay outputs of one record the Preisach start forms at once, at most
-_RELAYS_BUDGET = 128 * 2**20
 
 
 @eqx.filter_jit

@@ -811,7 +811,6 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                         histories[i].pop()
                         history_steps[i].pop()
                         fresh[i] = fresh_before[i]
-                    take = take & ~undo
                     relinearise = relinearise & ~undo
                 lin = Linearisation(lin_r, lin_cost, g, h)
                 state = _relinearise(solver, state, lin, jnp.asarray(relinearise))

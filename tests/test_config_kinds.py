@@ -158,7 +158,8 @@ def test_preisach_kind_starts_at_the_truth_on_its_own_grid(monkeypatch):
     start = pj.unwrap(cfg.build(ds))
     err = np.asarray(start.simulate(jnp.asarray(V), DT).displacement) - y
     assert np.sqrt(np.mean(err**2)) < 1e-6 * np.ptp(y)
-    monkeypatch.setattr("fitting._kinds._RELAYS_BUDGET", 4 * 8 * V.size)  # 15 relays: groups of 4, 4, 4, 3
+    # 15 relays in groups of 4, 4, 4, 3
+    monkeypatch.setattr("piezojax._hysteresis.initialise.COLUMNS_BUDGET", 4 * 8 * V.size)
     grouped = pj.unwrap(cfg.build(ds))
     np.testing.assert_array_equal(np.asarray(grouped.hysteresis.mu), np.asarray(start.hysteresis.mu))
     assert pj.unwrap(cfg.build(None)).hysteresis.mu.shape == (15,)

@@ -105,7 +105,7 @@ def test_cold_start_in_groups_of_plays_is_the_same(train_signal, monkeypatch):
     y = np.asarray(truth()(train_signal))
     whole = pj.pi_cold_start(v, y, N_PLAYS, max_rows=500)
     # 7 plays per group: the 120-threshold grid in 18 groups, the last of one play
-    monkeypatch.setattr(initialise, "_PLAYS_BUDGET", 7 * 8 * v.size)
+    monkeypatch.setattr(initialise, "COLUMNS_BUDGET", 7 * 8 * v.size)
     grouped = pj.pi_cold_start(v, y, N_PLAYS, max_rows=500)
     for a, b in zip(jax.tree_util.tree_leaves(whole), jax.tree_util.tree_leaves(grouped)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -104,23 +104,29 @@ def _plays(play: PlayOperator, v):
     return play(v)
 
 
-# the play outputs of one record formed at once, at most (before they are cut to the least-squares rows)
-_PLAYS_BUDGET = 128 * 2**20
+# the columns of one record a start forms at once, at most (before they are cut to the least-squares rows)
+COLUMNS_BUDGET = 128 * 2**20
+
+
+def columns_at_rows(make, count: int, samples: int, rows) -> np.ndarray:
+    """`(rows, count)` columns of one record of `samples` samples, `make(j, k)` giving columns `j:k` over the whole
+    record as `(samples, k - j)`: as many at a time as fit in `COLUMNS_BUDGET`, each group cut to `rows` at once, so
+    that the whole record's columns are never held (a 1e6-sample record's 64 plays at once took 512 MB)."""
+    step = max(1, COLUMNS_BUDGET // (8 * max(1, samples)))
+    return np.concatenate([np.asarray(make(j, min(j + step, count)))[rows] for j in range(0, count, step)], axis=1)
 
 
 def _design(records, thresholds, max_rows: int | None = None):
     """Rows [v, P_r1[v], ..., P_rn[v]] of every record (demagnetised start), and the outputs: every sample, or the
-    `row_subset` of at most `max_rows` (the plays run over each whole record, as many at a time as fit in 128 MiB,
-    each group cut to the rows at once: a 1e6-sample record's 64 plays at once held 512 MB)."""
+    `row_subset` of at most `max_rows` (the plays run over each whole record, `columns_at_rows`)."""
     thresholds = jnp.asarray(thresholds)
     keep = row_subset([v.size for v, _ in records], max_rows)
     blocks = []
     for (v, _), k in zip(records, keep):
-        step = max(1, _PLAYS_BUDGET // (8 * max(1, v.size)))
         vj = jnp.asarray(v)
-        plays = [np.asarray(_plays(PlayOperator(thresholds[j : j + step]), vj))[k]
-                 for j in range(0, thresholds.shape[0], step)]
-        blocks.append(np.column_stack([v[k], *plays]))
+        plays = columns_at_rows(lambda j, e, vj=vj: _plays(PlayOperator(thresholds[j:e]), vj), thresholds.shape[0],
+                                v.size, k)
+        blocks.append(np.column_stack([v[k], plays]))
     return np.concatenate(blocks), np.concatenate([y[k] for (_, y), k in zip(records, keep)])
 
 
