@@ -171,6 +171,30 @@ def test_frequency_response_and_dc_gain_match_scipy():
     np.testing.assert_allclose(G.dc_gain(), G.gain, rtol=1e-12)  # dc_normalised
 
 
+def test_realisation_and_state_derivatives_with_respect_to_den_match_finite_differences():
+    """The companion realisation is scaled by $w = \max_j |a_j|^{1/j}$: its matrices, and a state scanned with them,
+    depend on `den` through $w$ too (the output does not). Their derivatives match central differences, and a zero
+    coefficient gives a finite derivative (not 0 * inf)."""
+    num = jnp.array([2e4, 1e7])
+
+    def realisation(a2):
+        return pj.TransferFunction(num, jnp.array([1.0, 300.0, a2, 1e7])).state_space()[0][0, 1]
+
+    def state(a2):
+        return pj.TransferFunction(num, jnp.array([1.0, 300.0, a2, 1e7])).scan(jnp.ones(50), 1e-3)[0][0]
+
+    for f in (realisation, state):
+        fd = (f(4e5 + 1.0) - f(4e5 - 1.0)) / 2.0
+        np.testing.assert_allclose(jax.grad(f)(4e5), fd, rtol=1e-6)
+        np.testing.assert_allclose(jax.jacfwd(f)(4e5), fd, rtol=1e-6)
+
+    def with_zero(a1):
+        return jnp.sum(pj.TransferFunction([1.0], jnp.stack([1.0, a1, 100.0])).state_space()[0])
+
+    for d in (jax.grad(with_zero)(0.0), jax.jacfwd(with_zero)(0.0)):
+        np.testing.assert_allclose(d, (with_zero(1e-6) - with_zero(-1e-6)) / 2e-6, rtol=1e-6)
+
+
 # -- analytic -----------------------------------------------------------------------------------------------------
 
 

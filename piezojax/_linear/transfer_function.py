@@ -94,8 +94,11 @@ class TransferFunction(AbstractLinearSystem):
         a = den[1:]
         c = num[1:] - D * a
         powers = jnp.arange(1, n + 1, dtype=dtype)
-        # The realisation's output does not depend on w (a similarity transform), so w carries no gradient.
-        w = jax.lax.stop_gradient(jnp.max(jnp.abs(a) ** (1 / powers)))
+        # w differentiated like A, B, C (the realisation, and a state scanned with it, depend on it, although the
+        # output does not: a similarity transform); a zero coefficient is kept out of the power (d|a|^(1/j)/da is
+        # infinite at 0, and 0 * inf would make the derivative NaN)
+        nonzero = a != 0
+        w = jnp.max(jnp.where(nonzero, jnp.abs(jnp.where(nonzero, a, 1.0)) ** (1 / powers), 0.0))
         w = jnp.where(w > 0, w, jnp.ones((), dtype))
         wp = w**powers
         A = jnp.zeros((n, n), dtype).at[0, :].set(-a / wp * w)
