@@ -10,6 +10,7 @@ default free set, as every `ModelKind` (`fitting._model_kinds`).
 """
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -344,6 +345,12 @@ def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: fl
 _EM_SCAN = ("b", "k", "t_em", "element_capacitances", "breakaway_voltages")
 
 
+def _start_warning() -> type[Warning]:
+    from ._config import StartWarning  # `_config` imports this module
+
+    return StartWarning
+
+
 def _optional_start(start, *args) -> dict | None:
     """`start(*args)`, or `None` where it fails on the records (the caller falls back to the next start; an
     interrupt still stops the fit)."""
@@ -490,8 +497,8 @@ class ElectromechanicalKind(ModelKind):
             coef, res = solve(grid, omega, zeta)
             if coef[0] > 0 and np.isfinite(res) and (best is None or res < best[0]):
                 best = (res, omega, zeta, coef)
-        if best is None:
-            raise PiezojaxValueError("no loading curve in the displacement (zero or unrelated to v_in)")
+        if best is None:  # a heuristic that fails on usable data: the placeholder, and the fit may still get there
+            return self._start_failed(o, "no loading curve in the displacement (zero or unrelated to v_in)")
         _, omega, zeta, coef = best
         widths = np.sort(grid[np.argsort(-coef[1:], kind="stable")[:n]])
         coef, _ = solve(widths, omega, zeta)
@@ -512,13 +519,25 @@ class ElectromechanicalKind(ModelKind):
             cap = chord(vp, rest)
             cap = cap if cap > 0 else chord(vp, rest + t * np.concatenate([np.asarray(e["displacement"], float)
                                                                            for e in charged]))
-        if cap is None or not cap > 0:
+        if cap is None:
             raise PiezojaxValueError(f"{config.source}: [model] capacitance: give it explicitly, or fit on data "
                                      "files with a 'charge' column")
+        if not cap > 0:  # the charge does not rise with the voltage: no estimate, the fit starts from 1 uF
+            warnings.warn(f"[model] electromechanical: the capacitance estimated from the charge is {cap:.3g} F (the "
+                          "charge does not rise with v_in); starting from the placeholder 1e-6 F", _start_warning(),
+                          stacklevel=2)
+            cap = float(self._placeholder(o)["capacitance"])
         # element j moves with the charge, dq = (C + T^2/k) dV_p quasi-statically: C_j = (C + T^2/k)/a_j
         c_eff = cap + t**2 / k
         return {"b": b, "k": k, "capacitance": cap, "t_em": np.r_[t, np.zeros(o["degree"])],
                 "element_capacitances": c_eff / a, "breakaway_voltages": a * widths}
+
+    def _start_failed(self, o, why: str) -> dict:
+        """The placeholder values with a `StartWarning` saying `why` the data-driven start found none (a start must
+        not end the run)."""
+        warnings.warn(f"[model] electromechanical: the data-driven start failed ({why}); starting from the "
+                      "placeholder values", _start_warning(), stacklevel=3)
+        return self._placeholder(o)
 
     @staticmethod
     def missing_keys(o) -> tuple[str, ...]:

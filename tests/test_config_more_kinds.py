@@ -282,6 +282,47 @@ def test_electromechanical_displacement_start_copes_with_quiet_records_and_one_s
     assert float(starts["quiet"]["k"]) == pytest.approx(float(starts["plain"]["k"]), rel=1e-9)
 
 
+def test_electromechanical_start_falls_back_instead_of_raising_on_finite_records():
+    """Finite records where the rule-based start finds nothing: a voltage alternating 0/100 V every sample (no
+    loading curve in the displacement), and a charge that falls as the voltage rises (the estimated capacitance is
+    negative). The start warns and takes the placeholder values (the capacitance alone in the second case) instead
+    of ending the run; without a charge column and no `capacitance`, the user's error is still raised."""
+    from fitting._config import StartWarning
+
+    n, dt = 1000, 1e-3
+    t = np.arange(n) * dt
+
+    def plant(v):  # 5 plays, a 20 % lag, an offset (plain NumPy)
+        r, w = np.array([0, 10, 25, 45, 70.0]), np.array([1, 0.3, 0.2, 0.15, 0.1]) * 1e-7
+        y, p = np.zeros(5), np.empty_like(v)
+        for k, vk in enumerate(v):
+            y = np.clip(y, vk - r, vk + r)
+            p[k] = w @ y
+        s, c = p[0], np.empty_like(p)
+        for k in range(n):
+            s += dt / 0.05 * (p[k] - s)
+            c[k] = 0.8 * p[k] + 0.2 * s
+        return c + 2e-7
+
+    cfg = parse_config('[model]\nkind = "electromechanical"\nm = 0.01\nelements = 2\n', "em.toml")
+    v = 50 + 50 * np.cos(np.pi * np.arange(n))
+    alternating = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=plant(v))])
+    with pytest.warns(StartWarning, match="no loading curve.*placeholder"):
+        start = pj.unwrap(cfg.build(alternating))
+    # the placeholder values (through the positive reparametrisation: to rounding)
+    np.testing.assert_allclose([float(start.k), float(start.capacitance)], [1e6, 1e-6], rtol=1e-12)
+    v = 100 * (1 - np.abs(2 * (np.linspace(0, 3, n, endpoint=False) % 1) - 1))
+    x = plant(v)
+    falling = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=x, charge=-1e-6 * v - 0.5 * x)])
+    with pytest.warns(StartWarning, match="capacitance estimated from the charge is -.*placeholder 1e-6 F"):
+        start = pj.unwrap(cfg.build(falling))
+    assert float(start.capacitance) == pytest.approx(1e-6, rel=1e-12) and np.isfinite(float(start.k))
+    assert float(start.k) != pytest.approx(1e6)  # the mechanics still from the data
+    triangle = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=x)])
+    with pytest.raises(PiezojaxValueError, match="capacitance: give it explicitly"):
+        cfg.build(triangle)
+
+
 def test_model_kind_options_are_checked():
     with pytest.raises(PiezojaxValueError, match=r"\[model\] m: missing"):
         parse_config('[model]\nkind = "electromechanical"\n', "e.toml")
