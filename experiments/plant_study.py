@@ -32,6 +32,7 @@ For the in-class draws the fitted parameters are compared with the truth in unit
 ```
 python -m experiments.plant_study                      # 10 draws per truth (~ 30 min on 2 cores)
 python -m experiments.plant_study --draws 2 --cases pi # a quick look
+python -m experiments.plant_study --cases pi --dense   # crowded plays, all acting on the reversals
 ```
 """
 
@@ -124,7 +125,11 @@ def linear_part(h: np.ndarray, creep_gains, taus, omega: float, zeta: float) -> 
     return out
 
 
-def draw_truth(family: str, rng: np.random.Generator) -> dict:
+def draw_truth(family: str, rng: np.random.Generator, dense: bool = False) -> dict:
+    """One random plant. `dense` (`--dense`): the PI thresholds drawn again, uniform in (2, 48) % of the range and
+    at least 3 V apart: every play then acts on the records' reversals (a play of threshold r moves after a reversal
+    only once the input has travelled 2r, so above 50 V it shows only on the first loading), and the plays are
+    crowded, which is where a fit can end with every play a little off."""
     taus = None
     while taus is None or taus[1] / taus[0] < 2.5:
         taus = np.sort(np.exp(rng.uniform(np.log(0.05), np.log(2.0), 2)))
@@ -135,6 +140,11 @@ def draw_truth(family: str, rng: np.random.Generator) -> dict:
         w0 = rng.uniform(0.3, 0.6)
         truth |= {"thresholds": np.sort(rng.uniform(0.02, 0.85, N_PLAYS)) * VMAX,
                   "weights": w0 * rng.uniform(0.05, 0.3, N_PLAYS) * SCALE, "w0": w0 * SCALE}
+        if dense:
+            r = np.sort(rng.uniform(0.02, 0.48, N_PLAYS)) * VMAX
+            while np.min(np.diff(r)) < 3.0:
+                r = np.sort(rng.uniform(0.02, 0.48, N_PLAYS)) * VMAX
+            truth["thresholds"] = r
     else:
         beta = rng.uniform(0.005, 0.03)
         truth |= {"A": rng.uniform(0.2, 0.5), "beta": beta, "gamma": beta * rng.uniform(-0.5, 0.9), "d": 1.0}
@@ -238,13 +248,19 @@ def recovery(result: dict, truth: dict, sse_truth: float, sigma: float, samples:
     import scipy.stats
 
     true = _truth_parameters(truth)
+    # the creep's lags are interchangeable (their order is not constrained): the i-th fitted lag, by time constant,
+    # is compared with the i-th true one
+    params = result["parameters"]
+    fitted_taus = [params[f"creep.time_constants[{i}]"]["value"] for i in range(truth["taus"].size)]
+    rank = np.argsort(np.argsort(fitted_taus))  # fitted lag i -> position among the true (sorted) lags
     z_max, worst, skipped = 0.0, None, []
     z_blocks, worst_blocks = 0.0, None
-    for name, entry in result["parameters"].items():
+    for name, entry in params.items():
         path, _, index = name.partition("[")
         if path not in true:
             continue
-        value = np.atleast_1d(true[path])[int(index.rstrip("]")) if index else 0]
+        i = int(index.rstrip("]")) if index else 0
+        value = np.atleast_1d(true[path])[rank[i] if path.startswith("creep.") else i]
         if entry["std_error_status"] != "finite":
             skipped.append(f"{name}: {entry['std_error_status']}")
             continue
@@ -262,10 +278,11 @@ def recovery(result: dict, truth: dict, sse_truth: float, sigma: float, samples:
             "in_region": bool(0 <= lr <= scipy.stats.chi2.ppf(0.997, p)), "worse_than_truth": bool(lr < 0)}
 
 
-def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_steps: int | None) -> dict:
+def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_steps: int | None,
+             dense: bool = False) -> dict:
     truth_family, model_family = CASES[case]
     rng = np.random.default_rng([seed, draw, 0 if truth_family == "pi" else 1])
-    truth = draw_truth(truth_family, rng)
+    truth = draw_truth(truth_family, rng, dense)
     data = folder / f"{case}_{draw}"
     data.mkdir()
     sigma, sse_truth = write_records(truth, data, rng, seconds)
@@ -343,6 +360,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--seconds", type=float, default=1.0, help="record-length scale (CI: shorter records)")
     p.add_argument("--max-steps", type=int, default=None)
+    p.add_argument("--dense", action="store_true",
+                   help="PI truths with their six thresholds in 2-48 V, at least 3 V apart (see draw_truth)")
     p.add_argument("--keep", default=None, help="folder to keep the records and fits in (default: temporary)")
     p.add_argument("--json", default=None, help="write the rows and the summary to this file")
     args = p.parse_args(argv)
@@ -359,7 +378,7 @@ def main(argv: list[str] | None = None) -> dict:
               "   (RMSE / noise std)")
         for case in cases:
             for draw in range(args.draws):
-                row = run_draw(case, draw, args.seed, folder, args.seconds, args.max_steps)
+                row = run_draw(case, draw, args.seed, folder, args.seconds, args.max_steps, args.dense)
                 rows.append(row)
                 _print_row(row)
     summ = summary(rows)

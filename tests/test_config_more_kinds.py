@@ -585,6 +585,37 @@ def test_a_live_play_in_a_worse_place_is_swapped_where_the_residual_needs_it():
     assert cfg.reseeded(cfg._constrain(pj.Actuator(truth)), noisy, free, args) is None
 
 
+def test_plays_all_a_little_off_are_placed_anew_where_the_residual_needs_them():
+    """Every play of the fit a few volts from the plant's (10, 20, 30, 45 V fitted at 14, 25, 36, 52 V): no single
+    play gains much by moving, but non-negative least squares over the live and candidate plays puts the weight
+    around the plant's thresholds, and the groups merged into four plays land within one candidate spacing of them,
+    with positive weights near the plant's."""
+    from fitting._config import _play_clusters
+
+    t = np.arange(3000) / 1000.0
+    v = 100 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-0.4 * t)
+    truth = pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.25]), jnp.array([10.0, 20.0, 30.0, 45.0]), w0=0.5)
+    ds = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(truth(jnp.asarray(v))))])
+    cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 4\n[state]\noffset = false\n', "pi.toml")
+    fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.35, 0.2, 0.25, 0.2]), jnp.array([14.0, 25.0, 36.0, 52.0]),
+                                              w0=0.5))
+    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, cfg.fit_free(["displacement"]),
+                                {"predictor": cfg.predictor(), "targets": None})
+    assert moved == 4
+    pi = pj.unwrap(model).hysteresis
+    r, w = np.asarray(pi.thresholds), np.asarray(pi.weights)
+    assert np.all(np.abs(r - [10.0, 20.0, 30.0, 45.0]) < np.max(np.abs(v)) / 64) and np.all(w > 0)
+    np.testing.assert_allclose(w, [0.3, 0.25, 0.2, 0.25], rtol=0.15)
+    # the merging: groups become plays at their weighted mean; a far play of negligible weight is dropped, not
+    # merged into a neighbour; fewer plays with weight than asked for: None
+    r_grid = np.array([9.0, 11.0, 19.0, 21.0, 29.5, 95.0])
+    w_grid = np.array([1.0, 1.0, 2.0, 1.0, 1.0, 1e-4])
+    centres, weights = _play_clusters(r_grid, w_grid, 3)
+    np.testing.assert_allclose(centres, [10.0, (2 * 19.0 + 21.0) / 3, 29.5])
+    np.testing.assert_allclose(weights, [2.0, 3.0, 1.0])
+    assert _play_clusters(r_grid, np.array([1.0, 0.0, 0.0, 2.0, 0.0, 0.0]), 3) is None
+
+
 def test_a_maxwell_slip_element_in_a_worse_place_is_swapped_as_a_stop():
     """Maxwell-slip elements are stops, k (v - P_r[v]) with r = breakaway / stiffness: swapped like plays, from the
     same operator's PI form (w0 = sum k, weights -k). The plant's 80 V element, left at 50 V, moves to within one
