@@ -348,7 +348,8 @@ class ModelConfig:
         `targets` and `weights` of the fit) freed plays go where the residual needs them (`_residual_thresholds`),
         else to the widest gaps between the live thresholds; and when none is dead, one live element of a kind that
         swaps elements (`BlockKind.swap_form`: plays, Maxwell-slip elements) moves where the residual needs it if
-        that lowers the cost (`_play_swap`)."""
+        that lowers the cost (`_play_swap`). Before all of these, with `fit_args`, plays (not stops) may all be
+        placed anew where the residual needs them (`_play_replace`); then `None` also means none moved."""
         kind = self.hysteresis_kind
         if "hysteresis" not in self._block_tables() or kind.empty or kind.element_parameters is None:
             return None

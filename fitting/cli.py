@@ -634,9 +634,10 @@ def _release_memory_if_long(config, dataset, num_free: int) -> bool:
 
 
 def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
-    """More fits from `result` with its dead hysteresis elements re-seeded (`ModelConfig.reseeded`: plays the fit
-    left without weight, above the largest voltage, or on the threshold of another, placed where the residual
-    needs them), or, when none is dead, one live element swapped where the residual needs it, and its creep lags
+    """More fits from `result` with its hysteresis plays all placed anew where the residual needs them, or its dead
+    elements re-seeded (`ModelConfig.reseeded`: plays the fit left without weight, above the largest voltage, or on
+    the threshold of another, placed where the residual needs them), or, when none is dead, one live element
+    swapped where the residual needs it, and its creep lags
     moved where time constants elsewhere fit better (`ModelConfig.relocated_lags`), each kept when its cost is
     lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered the cost by more than `RESEED_GAIN` and
     left elements dead, an element to swap or lags misplaced again (plays pulled onto one kink of the data's
@@ -670,7 +671,7 @@ def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
             model, lags = relocated if relocated is not None else (model, 0)
             if not moved and not lags:
                 break
-            what = [f"{moved} hysteresis element(s) re-seeded (dead, coinciding, or a live one swapped)"
+            what = [f"{moved} hysteresis element(s) re-seeded (placed anew, dead, coinciding, or a live one swapped)"
                     ] if moved else []
             what += [f"{lags} creep lag(s) moved to other time constants"] if lags else []
             _info(f"{' and '.join(what)} where the residual needs them; fitting again", quiet)
