@@ -364,11 +364,12 @@ class ModelConfig:
         if fit_args is not None:
             def place(thresholds, weights, n):
                 return _residual_thresholds(plain, get, where, dataset, fit_args, thresholds, weights, n, vmax)
-        new = None if fit_args is None else _play_replace(plain, get, where, dataset, fit_args, vmax, kind)
+        new, lin = (None, None) if fit_args is None else _play_replace(plain, get, where, dataset, fit_args, vmax,
+                                                                       kind)
         if new is None:
             new = kind.reseed(self.hysteresis_options, block, vmax, place)
         if new is None and fit_args is not None:
-            new = _play_swap(plain, get, where, dataset, fit_args, vmax, kind)
+            new = _play_swap(plain, get, where, dataset, fit_args, vmax, kind, lin)
         if new is None:
             return None
         before, after = kind.swap_form(block), kind.swap_form(new)
@@ -612,7 +613,8 @@ def _residual_thresholds(plain, get, where: str, dataset, fit_args: Mapping, thr
 SWAP_CANDIDATES = 8
 
 
-def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float, kind: BlockKind):
+def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float, kind: BlockKind,
+               lin: "_PlayWeights | None" = None):
     r"""The fitted model's plays with one moved where the residual needs it, or `None`: every live play none of
     whose neighbours is dead (`_reseed_plays` found none) can still sit in a worse basin than another threshold
     (measured on a numpy plant of 5 plays at 10-95 V fitted with 5 plays: true 45 and 70 V ended at 44 and 51 V,
@@ -622,13 +624,15 @@ def _play_swap(plain, get, where: str, dataset, fit_args: Mapping, vmax: float, 
     candidate are refitted by linear least squares; the best set, with positive weights, is taken when it lowers
     the sum of squares below the live plays' own refit by more than `RELOCATE_GAIN` of it and than a regressor of
     pure noise would ($25\hat\sigma^2$). The swapped plays start at those refitted weights. The kind gives its
-    elements as weighted plays or stops (`BlockKind.swap_form`; `None`: it swaps none) and builds the block back."""
+    elements as weighted plays or stops (`BlockKind.swap_form`; `None`: it swaps none) and builds the block back.
+    `lin`: that linearisation when already formed (`_play_replace` forms the same one for plays)."""
     block = get(plain)
     form = kind.swap_form(block)
     if form is None:
         return None
-    w, r, stops = np.asarray(form[0], float), np.asarray(form[1], float), form[2]
-    lin = _PlayWeights(plain, get, where, dataset, fit_args, r, w, vmax, stops)
+    if lin is None:
+        lin = _PlayWeights(plain, get, where, dataset, fit_args, np.asarray(form[1], float),
+                           np.asarray(form[0], float), vmax, form[2])
     if lin.empty:
         return None
     live = lin.live
@@ -681,34 +685,36 @@ def _play_replace(plain, get, where: str, dataset, fit_args: Mapping, vmax: floa
     and candidate plays (`_PlayWeights.nonnegative`) puts weight in groups around the plant's thresholds, which are
     merged into as many plays as the block has (`_play_clusters`). The set is taken when its weights,
     refitted by linear least squares at the new thresholds, come out positive and lower the sum of squares below
-    the live plays' own refit by more than `RELOCATE_GAIN` of it and than a regressor of pure noise would
-    ($25\hat\sigma^2$); the plays start at those weights. Plays (not stops: Maxwell slip keeps `_play_swap`)."""
+    the live plays' own refit by more than a regressor of pure noise would ($25\hat\sigma^2$: the set has as many
+    parameters as the fitted one, so any significant decrease is worth the fit from it); the plays start at those
+    weights. Plays (not stops: Maxwell slip keeps `_play_swap`). Returns `(block or None, the linearisation at the
+    fitted plays or None)`, the second for `_play_swap`, which needs the same."""
     block = get(plain)
     form = kind.swap_form(block)
     if form is None or form[2]:
-        return None
+        return None, None
     w, r = np.asarray(form[0], float), np.asarray(form[1], float)
     lin = _PlayWeights(plain, get, where, dataset, fit_args, r, w, vmax)
     if lin.empty:
-        return None
+        return None, lin
     base = lin.sse - lin.decrease(lin.live)[0]
     found = _play_clusters(lin.r, lin.nonnegative()[0], r.size)
     if found is None:
-        return None
+        return None, lin
     r_new, w_new = found
     if np.all(np.abs(r_new - r) <= lin.spacing):  # every play where it was (to the candidates' resolution)
-        return None
+        return None, lin
     placed = kind.from_swap_form(block, w_new, r_new)
     new_form = kind.swap_form(placed)
     at = _PlayWeights(eqx.tree_at(get, plain, placed), get, where, dataset, fit_args, np.asarray(new_form[1], float),
                       np.asarray(new_form[0], float), vmax)
     if at.empty:
-        return None
+        return None, lin
     total, step = at.decrease(at.live)
     weights = at.w[at.live] + step / at.d[at.live]
     if not np.all(weights > 0) or base - (at.sse - total) <= lin.floor:
-        return None
-    return kind.from_swap_form(block, weights, at.r[at.live])
+        return None, lin
+    return kind.from_swap_form(block, weights, at.r[at.live]), lin
 
 
 # creep time constants searched after a fit (`ModelConfig.relocated_lags`): LAG_GRID candidates log-spaced over
