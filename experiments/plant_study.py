@@ -141,8 +141,8 @@ def draw_truth(family: str, rng: np.random.Generator, dense: bool = False) -> di
         truth |= {"thresholds": np.sort(rng.uniform(0.02, 0.85, N_PLAYS)) * VMAX,
                   "weights": w0 * rng.uniform(0.05, 0.3, N_PLAYS) * SCALE, "w0": w0 * SCALE}
         if dense:
-            r = np.sort(rng.uniform(0.02, 0.48, N_PLAYS)) * VMAX
-            while np.min(np.diff(r)) < 3.0:
+            r = None
+            while r is None or np.min(np.diff(r)) < 3.0:
                 r = np.sort(rng.uniform(0.02, 0.48, N_PLAYS)) * VMAX
             truth["thresholds"] = r
     else:

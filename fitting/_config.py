@@ -544,10 +544,10 @@ class _PlayWeights:
         unexplained = max(self.sse - self.decrease(list(range(order.size)))[0], 0.0)
         self.floor = 25.0 * unexplained / max(problem.num_residuals - order.size, 1)
 
-    def nonnegative(self) -> tuple[np.ndarray, float]:
+    def nonnegative(self) -> np.ndarray:
         r"""The weights of every play of `r` (live and candidate) that minimise the sum of squares of the
-        Gauss–Newton model subject to weights $\ge 0$ (non-negative least squares: most come out 0), and that sum of
-        squares. In the unit columns' coordinates $y = d\,w$ the model is
+        Gauss–Newton model subject to weights $\ge 0$ (non-negative least squares: most come out 0). In the unit
+        columns' coordinates $y = d\,w$ the model is
         $\mathrm{sse} + 2g^\top(y - y_0) + (y - y_0)^\top H (y - y_0) = \|A y - b\|^2 + \mathrm{const}$ with
         $H = A^\top A$, $A = \Lambda^{1/2}V^\top$ from $H = V\Lambda V^\top$ (eigenvalues below $10^{-12}$ of the
         largest set to that: candidate columns can be nearly dependent) and $b = A y_0 - \Lambda^{-1/2}V^\top g$."""
@@ -557,8 +557,7 @@ class _PlayWeights:
         lam = np.maximum(lam, 1e-12 * max(float(lam[-1]), TINY))
         a = np.sqrt(lam)[:, None] * vec.T
         c = (vec.T @ self.g) / np.sqrt(lam)
-        y, norm = scipy.optimize.nnls(a, a @ (self.w * self.d) - c, maxiter=50 * self.h.shape[0])
-        return y / self.d, float(self.sse - c @ c + norm**2)
+        return scipy.optimize.nnls(a, a @ (self.w * self.d) - c, maxiter=50 * self.h.shape[0])[0] / self.d
 
     def decrease(self, t, without=None):
         """`without`: a play (not in `t`) whose weight is set to 0, the plays `t` refitted with it removed."""
@@ -698,7 +697,7 @@ def _play_replace(plain, get, where: str, dataset, fit_args: Mapping, vmax: floa
     if lin.empty:
         return None, lin
     base = lin.sse - lin.decrease(lin.live)[0]
-    found = _play_clusters(lin.r, lin.nonnegative()[0], r.size)
+    found = _play_clusters(lin.r, lin.nonnegative(), r.size)
     if found is None:
         return None, lin
     r_new, w_new = found
