@@ -46,18 +46,15 @@ AMPLITUDE = 15e-6  # m
 METHODS = ("plain gain", "hysteresis inverse", "whole-actuator inverse")
 
 
-def _fit(argv: list[str]) -> None:
-    """`piezojax ARGV` in this process; an interrupted fit ends the run (exit status 130/143), a failed one raises."""
-    from fitting.cli import EXIT_INTERRUPTED, EXIT_TERMINATED
+def _fit(config: Path, out: Path, overwrite: bool) -> None:
+    """`piezojax fit CONFIG DATA --window :7 --out OUT` through the library; an interrupted fit ends the run (exit
+    status 130), its partial fit saved and refitted next time."""
+    from .plant_study import calibrate_files
 
-    from .plant_study import _cli
-
-    code, output = _cli(argv)
-    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED):
-        print(f"interrupted while fitting; the partial fit in {argv[argv.index('--out') + 1]} is refitted next time")
-        raise SystemExit(code)
-    if code not in (0, 1):  # 1: written, but the fit's verdict is not "converged"
-        raise RuntimeError(f"piezojax {' '.join(argv)} failed ({code}):\n{output[-2000:]}")
+    cal = calibrate_files(config, [str(DATA)], out, window=(None, 7.0), overwrite=overwrite)
+    if cal.result.code == "interrupted":
+        print(f"interrupted while fitting; the partial fit in {out} is refitted next time")
+        raise SystemExit(130)
 
 
 def reusable(out: Path) -> bool:
@@ -79,9 +76,7 @@ def fitted_models(folder: Path) -> dict[str, pj.Actuator]:
         if not reusable(out):
             t0 = time.perf_counter()
             folder.mkdir(parents=True, exist_ok=True)
-            again = ["--overwrite"] if out.exists() else []  # an interrupted fit of this script: refit in place
-            _fit(["fit", str(config), str(DATA), "--window", ":7", "--out", str(out), "--quiet", "--no-figures",
-                  *again])
+            _fit(config, out, overwrite=out.exists())  # an interrupted fit of this script: refit in place
             print(f"fitted {name} ({config.name}) in {time.perf_counter() - t0:.0f} s")
         models[name] = pj.unwrap(load_fitted(out)[1])
     return models

@@ -1,5 +1,6 @@
 r"""Calibration on an independent plant: random actuators written in plain NumPy/SciPy, fitted and scored through
-the command line (`piezojax fit` / `piezojax predict`), as a user with their own measurements would.
+the library's pipeline (`fitting.calibrate`, what `piezojax fit` runs, on the record files), as a user with their
+own measurements would.
 
 **The plant** (no piezojax code): the voltage $V$ (a DAC holds each sample) drives a hysteresis $h = \mathcal
 H[V]$, then Kelvin–Voigt creep *in series* and a second-order resonance,
@@ -37,8 +38,6 @@ python -m experiments.plant_study --cases pi --dense   # crowded plays, all acti
 """
 
 import argparse
-import contextlib
-import io
 import json
 import math
 import tempfile
@@ -47,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 import scipy.signal
+
+import fitting
 
 DT = 2e-4  # 5 kHz
 VMAX = 100.0
@@ -207,15 +208,36 @@ def write_records(truth: dict, folder: Path, rng: np.random.Generator, seconds: 
 # ---------------------------------------------------------------------------------------------- the study
 
 
-def _cli(argv: list[str]) -> tuple[int, str]:
-    """`piezojax ARGV` in this process (the command line's own entry point; compiled code is reused across
-    draws), its exit code and output."""
-    from fitting.cli import main
+def setup_jax() -> None:
+    """What `piezojax fit` sets before JAX starts: double precision, fused CPU scans (no effect once JAX has started,
+    as under pytest) and the compilation cache, so that the fits here are the command's fits."""
+    import warnings
 
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        code = main(argv, _restore_signals=False)
-    return code, buf.getvalue()
+    import jax
+
+    import piezojax as pj
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pj.enable_fast_cpu_scans()
+    jax.config.update("jax_enable_x64", True)
+    pj.enable_compilation_cache()
+
+
+def calibrate_files(config: Path, data: list[str], out: Path, *, max_steps: int | None = None,
+                    window: tuple[float | None, float | None] | None = None, overwrite: bool = False):
+    """`piezojax fit CONFIG DATA... --out OUT --no-figures --quiet` through the library (`fitting.calibrate`): the
+    folder written is the command's, and `piezojax predict` reads it. Returns the `fitting.Calibration`."""
+    import fitting
+
+    config = fitting.load_config(config)
+    dataset = fitting.Dataset.from_files(data, **config.data)
+    if window is not None:
+        dataset = dataset.window(*window)
+    cal = fitting.calibrate(config, dataset, max_steps=max_steps, progress=False)
+    cal.save(out, overwrite=overwrite, figures=False, data=data,
+             window=None if window is None else ":".join("" if b is None else f"{b:g}" for b in window))
+    return cal
 
 
 def _truth_parameters(truth: dict) -> dict[str, np.ndarray]:
@@ -291,15 +313,13 @@ def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_
     train = [str(data / "train_triangles.csv"), str(data / "train_steps.csv")]
     test = [str(data / "test_decaying_sine.csv"), str(data / "test_multisine.csv")]
     start = time.perf_counter()
-    argv = ["fit", str(config), *train, "--out", str(data / "fit"), "--no-figures", "--quiet"]
-    if max_steps is not None:
-        argv += ["--max-steps", str(max_steps)]
-    code, text = _cli(argv)
+    try:
+        cal = calibrate_files(config, train, data / "fit", max_steps=max_steps)
+    except Exception as e:  # noqa: BLE001 - a row of the study, as the command's exit 2 or 3 would be
+        return {"case": case, "draw": draw, "exit": 2 if isinstance(e, ValueError) else 3,
+                "time_s": time.perf_counter() - start, "sigma": sigma, "error": " ".join(str(e).split())}
     elapsed = time.perf_counter() - start
-    row = {"case": case, "draw": draw, "exit": code, "time_s": elapsed, "sigma": sigma}
-    if code not in (0, 1):
-        row["error"] = text.strip().splitlines()[-1] if text.strip() else "?"
-        return row
+    row = {"case": case, "draw": draw, "exit": 0 if cal.result.success else 1, "time_s": elapsed, "sigma": sigma}
     result = json.loads((data / "fit" / "result.json").read_text())
     row["verdict"] = result.get("code", "?")
     reseeded = result.get("cli", {}).get("reseeded")
@@ -307,12 +327,10 @@ def run_draw(case: str, draw: int, seed: int, folder: Path, seconds: float, max_
         f"{reseeded['elements']} plays, {reseeded.get('lags', 0)} lags, {'kept' if reseeded['kept'] else 'not kept'}")
     train_rmse = [m["displacement"]["rmse"] for m in result["metrics"].values()]
     row["train"] = float(np.sqrt(np.mean(np.square(train_rmse)))) / sigma
-    code, text = _cli(["predict", str(data / "fit"), *test, "--out", str(data / "predict")])
-    if code != 0:
-        row["error"] = text.strip().splitlines()[-1] if text.strip() else "?"
-        return row
-    metrics = json.loads((data / "predict" / "metrics.json").read_text())["metrics"]
-    row["held_out"] = {name: m["displacement"]["rmse"] / sigma for name, m in metrics.items()}
+    held_out = fitting.Dataset.from_files(test)
+    predictions = cal.result.predict(held_out)
+    row["held_out"] = {e.name: fitting.error_metrics(p["displacement"], e["displacement"])["rmse"] / sigma
+                       for e, p in zip(held_out, predictions)}
     row["held_out_worst"] = max(row["held_out"].values())
     if case == "pi":
         samples = {name: v.size for name, v in signals(seconds).items() if name.startswith("train")}
@@ -370,6 +388,7 @@ def main(argv: list[str] | None = None) -> dict:
         if c not in CASES:
             p.error(f"--cases: unknown case {c!r} (choose from {', '.join(CASES)})")
 
+    setup_jax()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.keep) if args.keep else Path(tmp)

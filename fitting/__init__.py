@@ -1,5 +1,7 @@
 """fitting: end-to-end calibration of piezojax models by nonlinear least squares.
 
+- The pipeline: `calibrate` does everything `piezojax fit` does (checks, data-driven starts, multi-start, the
+  refinement rounds, hints) and returns a `Calibration` (`.result`, `.report()`, `.save(folder)`).
 - Data: `Experiment`, `Dataset`, `load_experiment`, `save_experiment` (CSV, NPZ, HDF5, MATLAB .mat).
 - Model configurations: `load_config`, `parse_config`, `ModelConfig`; the registry of block kinds a CONFIG can
   name (`BlockKind`, `register_kind`, `ConfigTable`, `StartData`) and of whole-model kinds (`ModelKind`).
@@ -27,6 +29,7 @@ import importlib
 from typing import TYPE_CHECKING
 
 _EXPORTS = {
+    "._calibrate": ("Calibration", "calibrate"),
     "._config": ("ModelConfig", "load_config", "parse_config"),
     "._data": (
         "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "load_experiment",
@@ -73,6 +76,7 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # the same names for static analysis
+    from ._calibrate import Calibration as Calibration, calibrate as calibrate
     from ._config import ModelConfig as ModelConfig, load_config as load_config, parse_config as parse_config
     from ._data import (
         CHANNELS as CHANNELS,

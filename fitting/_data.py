@@ -1101,6 +1101,23 @@ class Dataset(Sequence):
             raise PiezojaxValueError(f"required channel(s) {list(req)} missing: {detail}")
         return self
 
+    def window(self, start: float | None = None, stop: float | None = None) -> "Dataset":
+        """Every experiment scored on $start \\le t < stop$ (seconds; `None`: the record's start or end), as
+        `piezojax fit --window START:STOP` fits it: cut at `stop`, and scored from `start`
+        (`Experiment.scored_from`), the samples before it run as the model's history. Names are kept.
+
+        ```python
+        train = fitting.Dataset.from_files(["record.csv"]).window(None, 7.0)  # the first 7 s
+        ```
+        """
+        out = []
+        for e in self._experiments:
+            part = e.slice(start, stop, name=e.name)  # the window's own checks (at least 2 samples in it)
+            whole = e.slice(None, stop, name=e.name)
+            out.append(part if part.t[0] == whole.t[0] else Experiment(
+                whole.t, whole.v_in, dict(whole.channels), e.name, e.source, scored_from=float(part.t[0])))
+        return Dataset(out)
+
     def __repr__(self) -> str:
         inner = ", ".join(f"{e.name!r} (n={e.n})" for e in self._experiments[:4])
         more = f", … {len(self) - 4} more" if len(self) > 4 else ""

@@ -24,8 +24,6 @@ if __name__ == "__main__" or sys.argv[0].rsplit("/", 1)[-1] == "piezojax":
 
 import argparse
 import contextlib
-import dataclasses
-import math
 import os
 import threading
 import warnings
@@ -33,9 +31,6 @@ from pathlib import Path
 
 EXIT_OK, EXIT_NOT_CONVERGED, EXIT_ERROR, EXIT_INTERNAL = 0, 1, 2, 3
 EXIT_INTERRUPTED, EXIT_TERMINATED = 128 + signal.SIGINT, 128 + signal.SIGTERM
-MIN_FIT_SAMPLES = 20
-"""Fewest samples per record that `piezojax fit` accepts (the data-driven initial values need a few periods of
-the slowest block)."""
 
 _CONFIG_HELP = """\
 CONFIG is a TOML file naming the model blocks, their parameter values (for `fit`: optional initial values; for
@@ -514,8 +509,6 @@ def _load_data(paths, settings: dict, group_option: str | None):
 def _windowed(dataset, window: str):
     """Every experiment of `dataset` scored on `START <= t < STOP` (`--window START:STOP`, seconds): cut at STOP,
     and scored from START (`Experiment.scored_from`), the samples before it run as the model's history."""
-    import fitting
-
     start, sep, stop = window.partition(":")
     try:
         bounds = [None if not b.strip() else float(b) for b in (start, stop)]
@@ -523,214 +516,12 @@ def _windowed(dataset, window: str):
         bounds = None
     if not sep or bounds is None or any(b is not None and b != b for b in bounds):
         raise _error(f"--window: expected START:STOP in seconds (either may be empty, e.g. :7), got {window!r}")
-    from piezojax._checks import PiezojaxValueError
+    from piezojax import PiezojaxValueError
 
     try:
-        out = []
-        for e in dataset:
-            part = e.slice(*bounds, name=e.name)  # the window's own checks (at least 2 samples in it)
-            whole = e.slice(None, bounds[1], name=e.name)
-            out.append(part if part.t[0] == whole.t[0] else fitting.Experiment(
-                whole.t, whole.v_in, dict(whole.channels), e.name, e.source, scored_from=float(part.t[0])))
-        return fitting.Dataset(out)
+        return dataset.window(*bounds)
     except PiezojaxValueError as e:
         raise _error(f"--window {window}: {e}") from e
-
-
-def _check_fit_data(dataset, targets) -> None:
-    """Data problems that would otherwise surface deep inside the initialisation, named by file and column."""
-    short = [e for e in dataset if e.n < MIN_FIT_SAMPLES]
-    if short:
-        e = short[0]
-        raise _error(f"{e._label()} has {e.n} samples; `piezojax fit` needs at least {MIN_FIT_SAMPLES} per record")
-    import numpy as np
-
-    useless = [e for e in dataset if not any(e.has(c) for c in targets)]
-    if useless:
-        e = useless[0]
-        raise _error(f"{e._label()} has none of the fitted channels ({', '.join(targets)}): it would add nothing to "
-                     f"the fit; its columns are {', '.join(('t', 'v_in') + e.channel_names)} (rename a file's column "
-                     "with --columns or [data] columns; predict from input-only files with `piezojax predict`)")
-    for c in targets:
-        having = [e for e in dataset if e.has(c)]
-        if having and all(np.ptp(e[c]) == 0 for e in having):
-            files = ", ".join(repr(e.source or e.name) for e in having[:3])
-            raise _error(f"column {c!r} is constant in every data file that has it ({files}"
-                         f"{', …' if len(having) > 3 else ''}): there is nothing to fit")
-    if all(not np.any(e.v_in) for e in dataset):
-        raise _error("column 'v_in' is zero in every data file: no model can be identified from no excitation")
-
-
-# the data-driven starts are fitted together only while they need no more than this (measured when their
-# linearisations were vmapped together, before XLA:CPU formed them one start at a time: two starts on one
-# 1e6-sample record peaked at 2.3 GB resident and took 3.3 times as long as one, which peaked at 1.55 GB). On XLA:CPU
-# the starts' memory no longer adds up, but their time does: re-measured with one start at a time on a 1e6-sample
-# record of the plant study (PI draw 0, triangles, 20 parameters, 2 cores), two starts forced past this gate peaked at
-# 1.83 GB against 1.87 GB for one, and took 280 s against 147 s for the whole command (178 s against 34 s for the
-# first fit: the cold start ran 147 steps and ended higher), the same result. The gate stays a cost gate.
-MULTI_START_MEMORY = 3 * 2**29
-# at most this many re-seeded fits after the first (each kept only when it lowers the cost), another only after one
-# that lowered the cost by more than this fraction
-RESEED_ROUNDS, RESEED_GAIN = 3, 1e-3
-
-
-def _memory_estimate(config, dataset, num_free: int) -> int:
-    """Bytes the fit is expected to need at its peak: the longest record's forward-mode Jacobian (the solver forms
-    it one record at a time on CPU), and the intermediates of the directions formed together (`tangent_block`;
-    about twelve floats per sample and direction — measured 603 MB of temporaries for four directions on 1e6
-    samples —, times the Bouc–Wen RK4 substeps)."""
-    from ._problem import tangent_block
-
-    m = max(e.n for e in dataset) * max(1, len(config.outputs))
-    together = tangent_block(m, num_free)
-    return 8 * m * num_free + 8 * m * (together + 1) * 12 * config.cost() + 200 * 2**20
-
-
-def _num_free(model, free) -> int:
-    """Number of free scalar parameters of `model` for the `free` paths."""
-    import jax.tree_util as jtu
-    import numpy as np
-
-    from ._problem import free_mask
-
-    mask, leaves = jtu.tree_leaves(free_mask(model, free)), jtu.tree_leaves(model)
-    return sum(int(np.size(x)) for m, x in zip(mask, leaves) if m is True)
-
-
-def _physical_memory() -> int | None:
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, AttributeError):  # pragma: no cover - not POSIX
-        return None
-
-
-def _check_memory(config, dataset, num_free: int) -> None:
-    need, have = _memory_estimate(config, dataset, num_free), _physical_memory()
-    if have is not None and need > 0.8 * have:
-        n = max(e.n for e in dataset)
-        raise _error(f"the fit would need about {need / 2**30:.1f} GiB ({n} samples in the longest record x "
-                     f"{num_free} free parameters), more than 80 % of this machine's {have / 2**30:.1f} GiB; "
-                     "resample the records, split long ones, or fit fewer parameters")
-
-
-# the longest record's Jacobian [bytes] above which `fit` returns the freed memory the process retains to the system:
-# glibc's threshold for mapping a block apart (`pj.retain_freed_memory`), above which the largest buffers bypass the
-# retained heaps anyway
-RETAIN_MEMORY_BELOW = 32 * 2**20
-
-
-def _release_memory_if_long(config, dataset, num_free: int) -> bool:
-    """`pj.release_freed_memory()` when the longest record's Jacobian takes more than `RETAIN_MEMORY_BELOW`: the set-up
-    retained freed memory (`pj.enable_fast_cpu_scans`), which pays on short records and costs on long ones. Measured
-    on 2 cores, each case with and without retaining: the 150 V README fit (35000 samples, 29 parameters) took
-    15.5-17.9 s of steps against 20.7-21.7 s, at a peak of 1.01 against 0.90 GB; a PI + series creep + resonance
-    fit (24 parameters) gained nothing on records of 2e5 samples (48.1 against 46.7 s) and 1e6 (59.8 against
-    59.0 s), and its peak rose from 1.32 to 1.64 GB and from 1.70 to 2.24 GB; released here, 1.60-1.62 GB at 1e6
-    (the whole command 101-106 s against 95 s retained or never retained). Returns whether it released."""
-    import piezojax as pj
-
-    m = max(e.n for e in dataset) * max(1, len(config.outputs))
-    return 8 * m * num_free > RETAIN_MEMORY_BELOW and pj.release_freed_memory()
-
-
-def _reseed(config, result, dataset, free, fit_args: dict, quiet: bool):
-    """More fits from `result` with its hysteresis plays all placed anew where the residual needs them, or its dead
-    elements re-seeded (`ModelConfig.reseeded`: plays the fit left without weight, above the largest voltage, or on
-    the threshold of another, placed where the residual needs them), or, when none is dead, one live element
-    swapped where the residual needs it, and its creep lags
-    moved where time constants elsewhere fit better (`ModelConfig.relocated_lags`), each kept when its cost is
-    lower; up to `RESEED_ROUNDS` rounds while the last was kept, lowered the cost by more than `RESEED_GAIN` and
-    left elements dead, an element to swap or lags misplaced again (plays pulled onto one kink of the data's
-    reversals can fall together in the re-seeded fit too). An interrupt (SIGINT/SIGTERM) ends the rounds: the
-    re-seeded fit's last accepted point is kept if its cost is lower, and the result returned has code
-    `"interrupted"` (its reason names the verdict of the fit kept). Returns the result kept and, for
-    `result.json`, what was done (`None` when nothing was dead or misplaced; per round the plays re-seeded,
-    `"elements"`, and the lags moved, `"lags"`; `"interrupted": True` when an interrupt ended it; `"error"` when a
-    round raised: the fit so far is kept and the error reported as a warning). A re-seeded result
-    kept reports the whole command's fitting: its steps, accepted steps and seconds summed over the first fit and
-    every re-seeded one, the first fit's initial cost and starts, and the cost history of the fits it comes from
-    (`_whole_run`)."""
-    import fitting
-
-    from ._solver import HARD_FAILURES
-
-    fits = [result]
-    rounds, interrupted, failure = [], False, None
-    try:
-        while len(rounds) < RESEED_ROUNDS:
-            again = config.reseeded(result.model, dataset, free, fit_args)
-            model, moved = again if again is not None else (result.model, 0)
-            try:  # a failure here must not discard the plays re-seeded above
-                relocated = config.relocated_lags(model, dataset, free, fit_args)
-            except KeyboardInterrupt:
-                raise
-            except Exception as e:  # noqa: BLE001 - an optional refinement; the fit so far stands
-                relocated = None
-                _info(f"warning: moving the creep lags failed ({type(e).__name__}: {' '.join(str(e).split())}); "
-                      "they stay where the fit left them")
-            model, lags = relocated if relocated is not None else (model, 0)
-            if not moved and not lags:
-                break
-            what = [f"{moved} hysteresis element(s) re-seeded (placed anew, dead, coinciding, or a live one swapped)"
-                    ] if moved else []
-            what += [f"{lags} creep lag(s) moved to other time constants"] if lags else []
-            _info(f"{' and '.join(what)} where the residual needs them; fitting again", quiet)
-            second = fitting.fit(model, dataset, **fit_args)
-            fits.append(second)
-            stopped = second.code == "interrupted"
-            kept = (second.code not in HARD_FAILURES or stopped) and second.cost < result.cost
-            previous = result
-            if kept:
-                result = second
-            rounds.append({"elements": moved, "lags": lags, "cost_before": float(previous.cost),
-                           "cost_after": float(second.cost), "steps": int(second.steps), "kept": bool(kept)})
-            _info(f"re-seeded fit{' (interrupted)' if stopped else ''}: cost {second.cost:.6e} against "
-                  f"{previous.cost:.6e}; {'kept' if kept else 'the earlier fit kept'}", quiet)
-            interrupted = stopped
-            if stopped or not kept or previous.cost - second.cost < RESEED_GAIN * previous.cost:
-                break
-    except KeyboardInterrupt:  # while placing the plays or compiling the new problem: the fits so far stand
-        interrupted = True
-    except Exception as e:  # noqa: BLE001 - a finished fit is never lost to its optional refinement
-        failure = f"{type(e).__name__}: {' '.join(str(e).split())}"
-        _info(f"warning: re-seeding the dead plays or moving the creep lags failed ({failure}); the fit so far is "
-              "kept")
-    # an interrupt that was swallowed on its way (see `_check_interrupted`) or turned into another error
-    interrupted = interrupted or _pending_interrupt()
-    if not rounds and not interrupted and failure is None:
-        return result, None
-    if result is not fits[0]:
-        result = _whole_run(result, fits)
-    before = rounds[0]["cost_before"] if rounds else float(result.cost)
-    info = {"elements": sum(r["elements"] for r in rounds), "lags": sum(r["lags"] for r in rounds),
-            "cost_before": before, "cost_after": float(result.cost), "kept": any(r["kept"] for r in rounds),
-            "rounds": rounds}
-    if interrupted:
-        info["interrupted"] = True
-        if result.code != "interrupted":  # the run was interrupted, whatever the verdict of the fit kept
-            result = dataclasses.replace(result, success=False, code="interrupted", reason=(
-                f"interrupted while re-seeding dead plays or moving creep lags; the best fit so far ({result.code}: "
-                f"{result.reason})"))
-    if failure is not None:
-        info["error"] = failure
-    return result, info
-
-
-def _whole_run(result, fits: list):
-    """`result`, one of `fits` (every fit `_reseed` ran, the first fit first), with the counts and the time of all
-    of them, and the first fit's initial cost and starts (each marked `first_of`: how many fits ran); its history
-    is that of the fits up to `result` (each started from the one before: a round follows only a kept one), one
-    after the other (the cost jumps up where plays were re-seeded), counted in the steps of the fits before."""
-    history, history_steps, offset = [], [], 0
-    for f in fits[: next(i for i, f in enumerate(fits) if f is result) + 1]:
-        history += list(f.history)
-        history_steps += [offset + int(s) for s in f.history_steps]
-        offset += int(f.steps)
-    return dataclasses.replace(
-        result, steps=sum(int(f.steps) for f in fits), accepted_steps=sum(int(f.accepted_steps) for f in fits),
-        seconds=sum(float(f.seconds) for f in fits), initial_cost=fits[0].initial_cost,
-        starts=[dict(st, first_of=len(fits)) for st in fits[0].starts] if fits[0].starts else fits[0].starts,
-        history=history, history_steps=history_steps)
 
 
 def _safe_name(name: str) -> str:
@@ -742,9 +533,9 @@ def _safe_name(name: str) -> str:
 
 def _cmd_fit(args) -> int:
     import fitting
-    import piezojax as pj
 
-    from ._config import MAX_STEPS, StartWarning, load_config
+    from ._calibrate import calibrate
+    from ._config import MAX_STEPS, load_config
 
     quiet = args.quiet
     if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
@@ -756,89 +547,17 @@ def _cmd_fit(args) -> int:
         dataset, unit_warnings = _load_data(args.data, settings, args.group)
         if args.window is not None:
             dataset = _windowed(dataset, args.window)
-        targets = config.fit_targets(dataset)
-        if isinstance(config.weights, dict):
-            lacking = [c for c in targets if c not in config.weights]
-            if lacking:
-                raise _error(f"{config.source}: [fit] weights: no weight for the target channel {lacking[0]!r} "
-                             f"(the data have it); give one, or set [fit] targets")
-        for c in config.inputs:
-            dataset.require(c)
-        _check_fit_data(dataset, targets)
-        free = config.fit_free(targets)
-        num_free = _num_free(config.build(None), free)
-        _check_memory(config, dataset, num_free)
-        _release_memory_if_long(config, dataset, num_free)
-        _info(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}",
-              quiet)
-        _info("initial values from the data", quiet)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", StartWarning)
-            starts = config.starts(dataset)
-        start_warnings = [str(w.message) for w in caught if issubclass(w.category, StartWarning)]
-        for m in start_warnings:
-            _info(f"warning: {m}")
-        max_steps = args.max_steps if args.max_steps is not None else config.max_steps
-        what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
-        _info(f"{what} on {', '.join(free)} (first step compiles)", quiet)
-        if len(starts) > 1:
-            need, have = len(starts) * _memory_estimate(config, dataset, num_free), _physical_memory()
-            if need > MULTI_START_MEMORY or (have is not None and need > 0.5 * have):
-                _info(f"fitting only the start closest to the data: {len(starts)} starts together would need about "
-                      f"{need / 2**30:.1f} GiB", quiet)
-                starts = starts[:1]
-            else:
-                _info(f"{len(starts)} starts (rule-based and joint cold start) fitted together; the best is kept",
-                      quiet)
-        fit_args = dict(predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
-                        smoothing=config.smoothing, max_steps=max_steps, progress=not quiet, method=config.method)
-        result = fitting.fit(starts[0], dataset, starts=starts if len(starts) > 1 else None, **fit_args)
-        reseeded = None
-        if result.code != "interrupted":
-            result, reseeded = _reseed(config, result, dataset, free, fit_args, quiet)
+        cal = calibrate(config, dataset, max_steps=args.max_steps, progress=not quiet,
+                        log=lambda m, warning=False: _info(m, quiet and not warning), interrupted=_pending_interrupt)
+        result = cal.result
         if result.code == "interrupted":
             _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
-        extra = {
-            "cli": {
-                "command": "fit",
-                "config": "config.toml",
-                "config_source": str(Path(args.config).absolute()),
-                "data": [str(Path(p).absolute()) for p in args.data],
-                "experiments": list(dataset.names),
-                "targets": list(targets),
-                "free": free,
-                "weights": result.weights,
-                "outputs": list(config.outputs),
-                "data_settings": settings,
-                "window": args.window,
-                "piezojax_version": pj.__version__,
-            },
-            "warnings": unit_warnings + start_warnings,
-        }
-        if reseeded is not None:
-            extra["cli"]["reseeded"] = reseeded
-        hints = _report_hints(config, result)
-        extra["cli"]["hints"] = hints
-        try:
-            derived = config.derived_values(result.model)
-        except (AttributeError, TypeError, ValueError) as e:  # a report's detail must not lose the finished fit
-            derived = {}
-            extra["warnings"].append(f"the values taken from the data could not be read from the model ({e})")
-        extra["cli"]["data_derived"] = derived
-        fitted = set(result.parameter_names)
-        lines = [f"  {k} = {v!r}" + ("  (fitted)" if config.derived_path(k) in fitted else "  (fixed)")
-                 for k, v in derived.items()]
-        if lines:
-            lines.insert(0, "values CONFIG does not give, taken from the data (give them in CONFIG to simulate):")
-        report = "\n".join([result.report(), *lines, *hints])
         _info(f"writing {out}", quiet)
-        result.write_files(tmp, figures=not args.no_figures, extra=extra, input_unit=config.model_kind.input_unit)
-        if hints or lines:  # the report with the command's lines
-            fitting.files.atomic_write_text(tmp / "report.txt", report + "\n")
-        fitting.files.atomic_write_text(tmp / "config.toml", config.text)
+        cal.write_files(tmp, figures=not args.no_figures, config_source=args.config, data=args.data,
+                        data_settings=settings, window=args.window, read_warnings=unit_warnings)
         _check_interrupted()
         _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
-    _out(report)
+    _out(cal.report())
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
         return _interrupt_status()
@@ -846,52 +565,6 @@ def _cmd_fit(args) -> int:
         _info(f"the fit did not converge ({result.reason}); results written to {out}")
         return EXIT_NOT_CONVERGED
     return EXIT_OK
-
-
-def _report_hints(config, result) -> list[str]:
-    """The lines the command adds to the report (on standard output, in `report.txt` and as `cli.hints` in
-    `result.json`): resonances the records cannot resolve (`_mode_hints`), and after a fit that leaves the residual
-    above the noise (`FitResult.report` says so), where a CONFIG left the creep's `structure` to its default
-    (parallel) and the displacement is the worst channel, the other one.
-    Measured on `experiments.plant_study`'s plant (series creep): fitted in parallel, one of three draws kept 1.31x
-    the noise in training and 1.8-2.0x held out, against 1.00x for the series model."""
-    from ._model_kinds import ACTUATOR
-    from ._results import lack_of_fit
-
-    hints = _mode_hints(result)
-    worst = lack_of_fit(result.metrics)
-    if not result.success or worst is None or worst[2] != "displacement" or config.model_kind is not ACTUATOR:
-        return hints
-    creep = config.kind("creep")
-    if config.hysteresis_kind.empty or creep.empty or "structure" in config.creep_options or len(creep.structures) < 2:
-        return hints
-    other = next(s for s in creep.structures if s != config.creep_structure)
-    return [f"  the creep is in {config.creep_structure} with the hysteresis (the default); `structure = \"{other}\"` "
-            f"in [creep] fits the other structure ({'after the hysteresis' if other == 'series' else 'beside it'})",
-            *hints]
-
-
-def _mode_hints(result) -> list[str]:
-    """Report lines on resonances the records cannot resolve: a fitted `omega` above the Nyquist frequency of the
-    finest record (a helper's order-4 fit of a two-mode plant put one at 15 MHz, sampled at 10 kHz, with a "finite"
-    standard error), and a `zeta` within two standard errors of 0 (a nearly undamped mode, where the linearised
-    errors of the mode are not reliable: a window fit gave its omega ± 0.014 %, 296 of them from the truth, which
-    fitted the window as well)."""
-    steps = [float(e.dt) for e in (result.dataset or [])]
-    nyquist = math.pi / min(steps) if steps else math.inf
-    out = []
-    for name, value, se, status in zip(result.parameter_names, result.values, result.std_errors,
-                                       result.std_error_status):
-        leaf = name.rsplit(".", 1)[-1]
-        if leaf.startswith("omega[") and value > nyquist:
-            out.append(f"  {name} = {value:.4g} rad/s is above the Nyquist frequency of the records ({nyquist:.4g} "
-                       "rad/s): the samples cannot resolve it, and its value and standard error mean nothing; a lower "
-                       "[dynamics] order, or zeros (`zero_pairs`), may describe the records better")
-        elif leaf.startswith("zeta[") and status == "finite" and value < 2 * se:
-            out.append(f"  {name} = {value:.3g} ± {se:.2g} is within two standard errors of 0 (a nearly undamped "
-                       "mode): the records do not determine its damping, and the standard errors of this mode, "
-                       "linearised there, are not reliable")
-    return out
 
 
 def load_fitted(model_dir) -> tuple:

@@ -127,6 +127,34 @@ def test_fit_writes_complete_folder_and_recovers_truth(fitted, work):
     assert res["cli"]["targets"] == ["displacement"] and len(res["cli"]["data"]) == 4
 
 
+def _without_times(value):
+    """`value` (parsed JSON) without its wall-clock times."""
+    if isinstance(value, dict):
+        return {k: _without_times(v) for k, v in value.items() if k not in ("seconds", "piezojax_version")}
+    if isinstance(value, list):
+        return [_without_times(v) for v in value]
+    return value
+
+
+def test_the_library_pipeline_writes_what_the_command_writes(fitted, work, tmp_path):
+    """`fitting.calibrate` + `Calibration.save` is `piezojax fit`: the same result.json (times aside), model.eqx,
+    report.txt and config.toml, from the same files."""
+    rc, out = fitted
+    d, files = work
+    cal = fitting.calibrate(str(d / "pi_creep.toml"), fitting.Dataset.from_files(files), progress=False)
+    assert cal.result.success and rc == 0
+    mine = cal.save(tmp_path / "lib", data=files)
+    command, library = (json.loads((f / "result.json").read_text()) for f in (out, mine))
+    assert _without_times(command) == _without_times(library)
+    for name in ("model.eqx", "config.toml", ".piezojax"):
+        assert (out / name).read_bytes() == (mine / name).read_bytes(), name
+    seconds = re.compile(r", [0-9.]+ s, ")  # the report's time of the fit
+    assert seconds.sub("", (out / "report.txt").read_text()) == seconds.sub("", (mine / "report.txt").read_text())
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in mine.iterdir())
+    with pytest.raises(pj.PiezojaxValueError, match="max_steps"):
+        fitting.calibrate(str(d / "pi_creep.toml"), fitting.Dataset.from_files(files), max_steps=0)
+
+
 def test_fit_names_a_lack_of_fit(work, tmp_path, capsys):
     """A model without the plant's resonance cannot reach the noise: `lack_of_fit` in result.json, a line in the
     report, and, the creep's structure being left at its default, the other structure named."""

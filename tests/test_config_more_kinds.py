@@ -415,12 +415,12 @@ def test_dead_plays_are_moved_to_the_widest_gaps():
 
 
 def test_a_kept_re_seeded_fit_reports_the_whole_command():
-    """`_whole_run`: the result of a kept re-seeded fit counts the steps, accepted steps and seconds of every fit
+    """`whole_run`: the result of a kept re-seeded fit counts the steps, accepted steps and seconds of every fit
     run (a round not kept included), starts from the first fit's initial cost and starts, and keeps the cost
     history of the fits it comes from, one after the other in steps."""
     import dataclasses
 
-    from fitting.cli import _whole_run
+    from fitting._refine import whole_run
 
     @dataclasses.dataclass
     class Fit:
@@ -435,30 +435,30 @@ def test_a_kept_re_seeded_fit_reports_the_whole_command():
     first = Fit(10, 8, 2.0, 5.0, [{"cost": 1.0}, {"cost": 1.2}], [5.0, 2.0, 1.0], [0, 4, 10])
     second = Fit(6, 5, 0.5, 1.5, None, [1.5, 0.9, 0.8], [0, 3, 6])  # re-seeded from the first, kept
     third = Fit(4, 2, 0.25, 1.1, None, [1.1, 0.85], [0, 4])  # re-seeded again, not kept
-    out = _whole_run(second, [first, second, third])
+    out = whole_run(second, [first, second, third])
     assert (out.steps, out.accepted_steps, out.seconds) == (20, 15, 2.75)
     assert out.initial_cost == 5.0 and out.starts == [{"cost": 1.0, "first_of": 3}, {"cost": 1.2, "first_of": 3}]
     assert out.history == [5.0, 2.0, 1.0, 1.5, 0.9, 0.8] and out.history_steps == [0, 4, 10, 10, 13, 16]
 
 
 def test_the_report_names_modes_the_records_cannot_resolve():
-    """`_mode_hints`: a fitted resonance above the records' Nyquist frequency, and a damping within two standard
+    """`mode_hints`: a fitted resonance above the records' Nyquist frequency, and a damping within two standard
     errors of 0, each get a line; a resolved, damped mode gets none."""
     import types
 
-    from fitting.cli import _mode_hints
+    from fitting._calibrate import mode_hints
 
     result = types.SimpleNamespace(
         dataset=[types.SimpleNamespace(dt=1e-4), types.SimpleNamespace(dt=2e-4)],
         parameter_names=["dynamics.omega[0]", "dynamics.omega[1]", "dynamics.zeta[0]", "dynamics.zeta[1]"],
         values=[2200.0, 9.5e7, 0.06, 7e-5], std_errors=[3.0, 1e14, 0.002, 1.4e-4],
         std_error_status=["finite"] * 4)
-    lines = _mode_hints(result)
+    lines = mode_hints(result)
     assert len(lines) == 2
     assert "dynamics.omega[1] = 9.5e+07 rad/s is above the Nyquist frequency of the records (3.142e+04" in lines[0]
     assert lines[1].startswith("  dynamics.zeta[1] = 7e-05 ± 0.00014 is within two standard errors of 0")
     result.values = [2200.0, 9000.0, 0.06, 0.05]
-    assert _mode_hints(result) == []
+    assert mode_hints(result) == []
 
 
 def test_the_command_line_refits_from_re_seeded_plays_and_keeps_the_better(tmp_path):

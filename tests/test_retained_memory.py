@@ -75,7 +75,7 @@ def test_fit_command_releases_memory_for_long_records_only(monkeypatch):
     # for mapping blocks apart (on 1e6 samples retaining raised the peak from 1.70 to 2.24 GB for no speed)
     import types
 
-    from fitting import cli
+    from fitting import _calibrate as pipeline
 
     calls = []
     monkeypatch.setattr(pj, "release_freed_memory", lambda: calls.append(1) or True)
@@ -84,11 +84,11 @@ def test_fit_command_releases_memory_for_long_records_only(monkeypatch):
     def records(*lengths):
         return [types.SimpleNamespace(n=n) for n in lengths]
 
-    limit = cli.RETAIN_MEMORY_BELOW // (8 * 24)  # samples of a 24-parameter fit's record at the limit
-    assert cli._release_memory_if_long(config, records(1000, limit), 24) is False
+    limit = pipeline.RETAIN_MEMORY_BELOW // (8 * 24)  # samples of a 24-parameter fit's record at the limit
+    assert pipeline.release_memory_if_long(config, records(1000, limit), 24) is False
     assert calls == []
-    assert cli._release_memory_if_long(config, records(1000, limit + 1), 24) is True
-    assert cli._release_memory_if_long(config, records(1_000_000), 24) is True
+    assert pipeline.release_memory_if_long(config, records(1000, limit + 1), 24) is True
+    assert pipeline.release_memory_if_long(config, records(1_000_000), 24) is True
     two = types.SimpleNamespace(outputs=("displacement", "charge"))
-    assert cli._release_memory_if_long(two, records(limit // 2 + 1), 24) is True  # two channels: twice the rows
+    assert pipeline.release_memory_if_long(two, records(limit // 2 + 1), 24) is True  # two channels: twice the rows
     assert calls == [1, 1, 1]

@@ -689,9 +689,9 @@ def test_broken_stdout_pipe_keeps_the_status_and_the_outputs(bench, tmp_path):
 
 
 def test_fit_too_large_for_the_memory_is_refused_before_any_work(bench, tmp_path, capsys, monkeypatch):
-    import fitting.cli as cli
+    import fitting._calibrate as pipeline
 
-    monkeypatch.setattr(cli, "_physical_memory", lambda: 64 * 2**20)
+    monkeypatch.setattr(pipeline, "physical_memory", lambda: 64 * 2**20)
     out = tmp_path / "big"
     rc = main(["fit", str(bench / "pi.toml"), str(bench / "ok.csv"), "--out", str(out)])
     err = capsys.readouterr().err.strip().splitlines()
