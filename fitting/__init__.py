@@ -30,15 +30,16 @@ from typing import TYPE_CHECKING
 
 _EXPORTS = {
     "._calibrate": ("Calibration", "calibrate"),
-    "._config": ("ModelConfig", "load_config", "parse_config"),
+    "._config": (
+        "BlockKind", "ConfigTable", "ModelConfig", "ModelKind", "StartData", "StartWarning", "load_config",
+        "parse_config", "register_kind", "register_model_kind", "registered_kinds", "unregister_kind",
+    ),
     "._data": (
         "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "load_experiment",
         "save_experiment",
     ),
     "._fleet": ("FleetResult", "fit_fleet"),
     "._initialise": ("cold_start_actuator", "cold_start_free"),
-    "._kinds": ("BlockKind", "ConfigTable", "StartData", "register_kind", "registered_kinds", "unregister_kind"),
-    "._model_kinds": ("ModelKind", "register_model_kind"),
     "._plots": (
         "plot_convergence", "plot_loops", "plot_parameters", "plot_timeseries", "save_figures",
     ),
@@ -77,7 +78,20 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # the same names for static analysis
     from ._calibrate import Calibration as Calibration, calibrate as calibrate
-    from ._config import ModelConfig as ModelConfig, load_config as load_config, parse_config as parse_config
+    from ._config import (
+        BlockKind as BlockKind,
+        ConfigTable as ConfigTable,
+        ModelConfig as ModelConfig,
+        ModelKind as ModelKind,
+        StartData as StartData,
+        StartWarning as StartWarning,
+        load_config as load_config,
+        parse_config as parse_config,
+        register_kind as register_kind,
+        register_model_kind as register_model_kind,
+        registered_kinds as registered_kinds,
+        unregister_kind as unregister_kind,
+    )
     from ._data import (
         CHANNELS as CHANNELS,
         SUPPORTED_SUFFIXES as SUPPORTED_SUFFIXES,
@@ -89,15 +103,6 @@ if TYPE_CHECKING:  # the same names for static analysis
     )
     from ._fleet import FleetResult as FleetResult, fit_fleet as fit_fleet
     from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
-    from ._kinds import (
-        BlockKind as BlockKind,
-        ConfigTable as ConfigTable,
-        StartData as StartData,
-        register_kind as register_kind,
-        registered_kinds as registered_kinds,
-        unregister_kind as unregister_kind,
-    )
-    from ._model_kinds import ModelKind as ModelKind, register_model_kind as register_model_kind
     from ._plots import (
         plot_convergence as plot_convergence,
         plot_loops as plot_loops,

@@ -15,11 +15,10 @@ import piezojax as pj
 from piezojax import PiezojaxValueError
 
 from . import files
-from ._config import MAX_STEPS, ModelConfig, StartWarning, load_config
+from ._config import ACTUATOR, MAX_STEPS, ModelConfig, StartWarning, load_config
 from ._data import Dataset, experiments_of
-from ._model_kinds import ACTUATOR
 from ._problem import free_mask, tangent_block
-from ._refine import _silent, refine
+from ._refine import refine, silent
 from ._results import FitResult, lack_of_fit
 from ._solve import fit
 
@@ -118,7 +117,7 @@ class Calibration:
         return path
 
 
-def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool = True, log: Callable = _silent,
+def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool = True, log: Callable = silent,
               interrupted: Callable[[], bool] = lambda: False) -> Calibration:
     """Calibrate the model of `config` on `dataset`: what `piezojax fit` does, without reading or writing files.
 

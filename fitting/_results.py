@@ -318,7 +318,7 @@ def _at_bound(problem, u) -> np.ndarray:
     """Per free parameter: an entry of a leaf constrained away from zero (`pj.Positive`, `pj.OrderedPositive`,
     `pj.Fractions`, negative poles) pressed against that bound, i.e. within 1e-9 of the largest magnitude in its
     leaf of zero (a dead play weight, a vanished lag fraction)."""
-    from ._kinds import Negative
+    from ._config.table import Negative
     from ._problem import free_physical_tree, is_reparam, path_string
 
     flags = []

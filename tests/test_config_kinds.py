@@ -1,6 +1,8 @@
 """The registry of CONFIG block kinds: a new kind registered from one file (this one) is parsed, started from data,
 built, constrained, fitted and saved like the built-in ones; the Preisach kind and dynamics with zeros."""
 
+import ast
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -122,13 +124,17 @@ def test_registry_refuses_duplicates_and_foreign_objects(weighted_play):
 
 
 def test_generic_config_code_names_no_kind():
-    """Every kind-specific name lives in the registry: the generic module's code (docstrings aside) names none."""
-    import ast
+    """Every kind-specific name lives in the registry: the generic modules' code (docstrings aside) names none."""
     import inspect
 
-    import fitting._config as generic
+    import fitting._config.model_config
+    import fitting._config.parse
 
-    tree = ast.parse(inspect.getsource(generic))
+    for generic in (fitting._config.model_config, fitting._config.parse):
+        _names_no_kind(ast.parse(inspect.getsource(generic)))
+
+
+def _names_no_kind(tree):
     docstrings = {id(n.body[0].value) for n in ast.walk(tree)
                   if isinstance(n, ast.Module | ast.ClassDef | ast.FunctionDef) and n.body
                   and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
@@ -305,7 +311,7 @@ def test_paper_002_sensor_layer_observer_is_configured_and_recovered():
 def test_a_fitted_value_at_its_bound_can_be_constrained_again():
     """A fitted play threshold whose softplus underflowed to exactly 0 (a re-seeding round refits from such a model)
     is moved off the bound by a rounding-size step; a value below the bound is still refused."""
-    from fitting._config import _off_the_bound
+    from fitting._config.model_config import _off_the_bound
 
     wrapped = _off_the_bound(pj.OrderedPositive)(jnp.asarray([0.0, 0.0, 5.0]))
     value = np.asarray(wrapped.unwrap())

@@ -9,6 +9,7 @@ import pytest
 import fitting
 import piezojax as pj
 from fitting._config import parse_config
+from fitting._refine import relocated_lags, reseeded
 from piezojax._checks import PiezojaxValueError
 
 
@@ -67,7 +68,7 @@ def test_linear_creep_start_is_the_kelvin_voigt_creep_it_is_written_from(play_pl
         lin = parse_config(f'[hysteresis]\nkind = "play"\n[creep]\nkind = "linear"\norder = 3\n{extra}', "l.toml")
         kv = parse_config(f'[hysteresis]\nkind = "play"\n[creep]\nkind = "kelvin_voigt"\norder = 3\n{extra}',
                           "k.toml")
-        from fitting._kinds import StartData
+        from fitting._config import StartData
 
         data = StartData(lin, ds, use_cold_start=False)
         vals = lin.kind("creep").start(lin.creep_options, data)
@@ -262,7 +263,7 @@ def test_electromechanical_displacement_start_copes_with_quiet_records_and_one_s
     """The displacement-only start scans resonances by simulation: with `substeps = 1` it keeps the candidates the
     fixed steps integrate stably (it had crashed the fit on the others), and a record that starts with seconds at
     rest is scanned from where its drive moves (it had scored every candidate 0 and picked the first)."""
-    from fitting._nonlinear_kinds import _electromechanical_from_displacement, electromechanical_predictor
+    from fitting._config.kinds.nonlinear import _electromechanical_from_displacement, electromechanical_predictor
 
     fs, n = 1e4, 1500
     t = np.arange(n) / fs
@@ -392,7 +393,7 @@ def test_sensor_layer_offset_from_config_is_started_and_fitted():
 
 
 def test_dead_plays_are_moved_to_the_widest_gaps():
-    from fitting._kinds import _reseed_plays
+    from fitting._config.kinds.hysteresis import _reseed_plays
 
     pi = pj.PrandtlIshlinskii(jnp.array([1.0, 1e-9, 0.5]), jnp.array([1.0, 2.0, 20.0]), w0=0.3)
     new = _reseed_plays(pi, 10.0)  # the second is dead by weight, the third never moves (threshold above 10 V)
@@ -404,14 +405,14 @@ def test_dead_plays_are_moved_to_the_widest_gaps():
     near = _reseed_plays(pj.PrandtlIshlinskii(jnp.array([1.0, 0.5, 2.0]), jnp.array([1.0, 2.0, 9.999])), 10.0)
     np.testing.assert_allclose(near.thresholds, [1.0, 2.0, 6.0])
     cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n', "pi.toml")
-    model = cfg._constrain(pj.Actuator(pi))
+    model = cfg.constrain(pj.Actuator(pi))
     ds = fitting.Dataset([fitting.Experiment.from_arrays(t=np.arange(5.0), v_in=[0.0, 10, -10, 5, 0],
                                                          displacement=np.zeros(5))])
-    again, moved = cfg.reseeded(model, ds, ["hysteresis", "offset"])
+    again, moved = reseeded(cfg, model, ds, ["hysteresis", "offset"])
     assert moved == 2
     np.testing.assert_allclose(pj.unwrap(again).hysteresis.thresholds, [1.0, 3.25, 5.5])
     assert type(again.hysteresis.thresholds) is type(model.hysteresis.thresholds)  # still reparametrised
-    assert cfg.reseeded(model, ds, ["hysteresis.weights"]) is None  # thresholds fixed: nothing to move
+    assert reseeded(cfg, model, ds, ["hysteresis.weights"]) is None  # thresholds fixed: nothing to move
 
 
 def test_a_kept_re_seeded_fit_reports_the_whole_command():
@@ -494,7 +495,7 @@ def test_the_command_line_refits_from_re_seeded_plays_and_keeps_the_better(tmp_p
 
 
 def test_coinciding_plays_count_as_one_and_free_the_others():
-    from fitting._kinds import _reseed_plays
+    from fitting._config.kinds.hysteresis import _reseed_plays
 
     pi = pj.PrandtlIshlinskii(jnp.array([1.0, 0.3, 0.2, 0.4]), jnp.array([1.0, 5.0, 5.0001, 8.0]), w0=0.3)
     new = _reseed_plays(pi, 10.0)  # 5 and 5.0001 V act as one play of weight 0.5; the other goes to the widest gap
@@ -530,12 +531,12 @@ def test_freed_plays_go_where_the_residual_needs_them():
     fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.2, 0.25, 1e-12]), jnp.array([10.0, 30.0, 80.0, 99.9]),
                                               w0=0.5))
     free = cfg.fit_free(["displacement"])
-    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
+    model, moved = reseeded(cfg, cfg.constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
     assert moved == 1
     r = np.asarray(pj.unwrap(model).hysteresis.thresholds)
     np.testing.assert_allclose(r[[0, 2, 3]], [10.0, 30.0, 80.0])
     assert abs(r[1] - 20.0) < np.max(np.abs(v)) / 64  # within one candidate spacing of the missing play
-    blind, _ = cfg.reseeded(cfg._constrain(fitted), ds, free)
+    blind, _ = reseeded(cfg, cfg.constrain(fitted), ds, free)
     np.testing.assert_allclose(pj.unwrap(blind).hysteresis.thresholds, [10.0, 30.0, 55.0, 80.0])
     # nothing to gain beyond the noise: the truth itself with a freed (dead) fifth play, on noisy data; no candidate
     # explains more than noise would, so the play goes to the widest gap
@@ -545,7 +546,7 @@ def test_freed_plays_go_where_the_residual_needs_them():
     exact = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.25, 1e-12]),
                                              jnp.array([10.0, 20.0, 30.0, 80.0, 99.9]), w0=0.5))
     cfg5 = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 5\n[state]\noffset = false\n', "pi.toml")
-    same, _ = cfg5.reseeded(cfg5._constrain(exact), noisy, free, {"predictor": cfg5.predictor(), "targets": None})
+    same, _ = reseeded(cfg5, cfg5.constrain(exact), noisy, free, {"predictor": cfg5.predictor(), "targets": None})
     np.testing.assert_allclose(pj.unwrap(same).hysteresis.thresholds, [10.0, 20.0, 30.0, 55.0, 80.0])
 
 
@@ -564,25 +565,25 @@ def test_a_live_play_in_a_worse_place_is_swapped_where_the_residual_needs_it():
     args = {"predictor": cfg.predictor(), "targets": None}
     fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.3, 0.25, 0.2, 0.1]), jnp.array([10.0, 20.0, 30.0, 50.0]),
                                               w0=0.5))
-    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, args)
+    model, moved = reseeded(cfg, cfg.constrain(fitted), ds, free, args)
     assert moved == 1
     pi = pj.unwrap(model).hysteresis
     r, w = np.asarray(pi.thresholds), np.asarray(pi.weights)
     np.testing.assert_allclose(r[:3], [10.0, 20.0, 30.0])
     assert abs(r[3] - 80.0) < np.max(np.abs(v)) / 64 and np.all(w > 0)
     np.testing.assert_allclose(w, [0.3, 0.25, 0.2, 0.25], rtol=0.1)
-    assert cfg.reseeded(cfg._constrain(fitted), ds, free) is None
+    assert reseeded(cfg, cfg.constrain(fitted), ds, free) is None
     # a single backlash play (`kind = "play"`, one play) left at 70 V moves to the plant's 30 V
     one = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=np.asarray(pj.PrandtlIshlinskii(
         jnp.array([0.4]), jnp.array([30.0]), w0=0.0)(jnp.asarray(v))))])
     play = parse_config('[hysteresis]\nkind = "play"\n[state]\noffset = false\n', "play.toml")
     wrong = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.4]), jnp.array([70.0]), w0=0.0))
-    moved_play, count = play.reseeded(play._constrain(wrong), one, play.fit_free(["displacement"]),
+    moved_play, count = reseeded(play, play.constrain(wrong), one, play.fit_free(["displacement"]),
                                       {"predictor": play.predictor(), "targets": None})
     assert count == 1 and abs(float(pj.unwrap(moved_play).hysteresis.thresholds[0]) - 30.0) < np.max(np.abs(v)) / 64
     noisy = fitting.Dataset([fitting.Experiment.from_arrays(
         t=t, v_in=v, displacement=y + 0.05 * np.random.default_rng(3).standard_normal(t.size))])
-    assert cfg.reseeded(cfg._constrain(pj.Actuator(truth)), noisy, free, args) is None
+    assert reseeded(cfg, cfg.constrain(pj.Actuator(truth)), noisy, free, args) is None
 
 
 def test_plays_all_a_little_off_are_placed_anew_where_the_residual_needs_them():
@@ -590,7 +591,7 @@ def test_plays_all_a_little_off_are_placed_anew_where_the_residual_needs_them():
     play gains much by moving, but non-negative least squares over the live and candidate plays puts the weight
     around the plant's thresholds, and the groups merged into four plays land within one candidate spacing of them,
     with positive weights near the plant's."""
-    from fitting._config import _play_clusters
+    from fitting._refine.plays import _play_clusters
 
     t = np.arange(3000) / 1000.0
     v = 100 * np.sin(2 * np.pi * 2.0 * t) * np.exp(-0.4 * t)
@@ -599,7 +600,7 @@ def test_plays_all_a_little_off_are_placed_anew_where_the_residual_needs_them():
     cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 4\n[state]\noffset = false\n', "pi.toml")
     fitted = pj.Actuator(pj.PrandtlIshlinskii(jnp.array([0.35, 0.2, 0.25, 0.2]), jnp.array([14.0, 25.0, 36.0, 52.0]),
                                               w0=0.5))
-    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, cfg.fit_free(["displacement"]),
+    model, moved = reseeded(cfg, cfg.constrain(fitted), ds, cfg.fit_free(["displacement"]),
                                 {"predictor": cfg.predictor(), "targets": None})
     assert moved == 4
     pi = pj.unwrap(model).hysteresis
@@ -629,7 +630,7 @@ def test_a_maxwell_slip_element_in_a_worse_place_is_swapped_as_a_stop():
     free = cfg.fit_free(["displacement"])
     k0 = np.array([0.3, 0.25, 0.2, 0.3])
     fitted = pj.Actuator(pj.MaxwellSlip(jnp.asarray(k0), jnp.asarray(k0 * np.array([10.0, 20.0, 30.0, 50.0]))))
-    model, moved = cfg.reseeded(cfg._constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
+    model, moved = reseeded(cfg, cfg.constrain(fitted), ds, free, {"predictor": cfg.predictor(), "targets": None})
     assert moved == 1
     ms = pj.unwrap(model).hysteresis
     r, stiffness = np.asarray(ms.thresholds), np.asarray(ms.stiffness)
@@ -647,7 +648,7 @@ def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, mo
     import os
     import signal
 
-    from fitting._config import ModelConfig
+    import fitting._refine.rounds
     from fitting.cli import main
 
     t = np.arange(800) / 400.0
@@ -659,16 +660,16 @@ def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, mo
                comments="")
     (tmp_path / "pi.toml").write_text('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 8\n')
 
-    def interrupted(self, model, dataset, free, fit_args=None):
+    def interrupted(config, model, dataset, free, fit_args=None):
         assert fit_args["predictor"] is not None  # the command line places freed plays by the residual
         os.kill(os.getpid(), signal.SIGINT)  # the command's handler raises it here, as Ctrl-C would
         pytest.fail("the interrupt was not raised")
 
-    def broken(self, *args, **kwargs):
+    def broken(*args, **kwargs):
         raise RuntimeError("placement\nbroke")
 
     argv = ["fit", str(tmp_path / "pi.toml"), str(tmp_path / "d.csv"), "--quiet", "--no-figures", "--out"]
-    monkeypatch.setattr(ModelConfig, "reseeded", interrupted)
+    monkeypatch.setattr(fitting._refine.rounds, "reseeded", interrupted)
     assert main(argv + [str(tmp_path / "fit")]) == 128 + signal.SIGINT
     result = json.loads((tmp_path / "fit" / "result.json").read_text())
     assert result["cli"]["reseeded"]["interrupted"] is True and result["cli"]["reseeded"]["rounds"] == []
@@ -676,7 +677,7 @@ def test_an_interrupt_or_error_while_re_seeding_keeps_the_first_fit(tmp_path, mo
     assert result["code"] == "interrupted" and "the best fit so far" in result["reason"]
     assert (tmp_path / "fit" / "model.eqx").exists()
     # an error in the optional refinement does not lose the finished fit either: reported, the fit's own verdict
-    monkeypatch.setattr(ModelConfig, "reseeded", broken)
+    monkeypatch.setattr(fitting._refine.rounds, "reseeded", broken)
     code = main(argv + [str(tmp_path / "fit2")])
     again = json.loads((tmp_path / "fit2" / "result.json").read_text())
     assert again["code"] != "interrupted" and code == (0 if again["success"] else 1)
@@ -705,7 +706,7 @@ def test_creep_lags_move_to_the_time_constants_the_residual_needs(kind):
     """A model whose two creep lags sit together at 0.3 s where the plant's are at 0.02 s and 0.5 s (the rest of
     the model exact): the search moves both to within one grid step (a factor 1.22) of the truth, with gains that
     lower the cost; at the truth itself nothing moves."""
-    from fitting._config import _lag_search
+    from fitting._refine.lags import _lag_search
 
     taus = jnp.array([0.02, 0.5])
     if kind == "kelvin_voigt":
@@ -722,10 +723,10 @@ def test_creep_lags_move_to_the_time_constants_the_residual_needs(kind):
     (name, values), = wrong.items()
     fitted = eqx.tree_at(lambda m: (getattr(m.creep, name), m.creep.time_constants), truth,
                          (jnp.array(values), jnp.array([0.28, 0.32])))
-    model, moved = cfg.relocated_lags(cfg._constrain(fitted), ds, free, args)
+    model, moved = relocated_lags(cfg, cfg.constrain(fitted), ds, free, args)
     assert moved == 2
     new = pj.unwrap(model).creep
-    assert type(model.creep.time_constants) is type(cfg._constrain(fitted).creep.time_constants)  # reparametrised
+    assert type(model.creep.time_constants) is type(cfg.constrain(fitted).creep.time_constants)  # reparametrised
     ratio = np.asarray(new.time_constants) / np.asarray(taus)
     assert np.all((ratio > 1 / 1.22) & (ratio < 1.22)), new.time_constants
     cost = {}
@@ -733,12 +734,12 @@ def test_creep_lags_move_to_the_time_constants_the_residual_needs(kind):
         problem = fitting.Problem(m, ds, predictor=args["predictor"], free=free)
         cost[label] = float(np.sum(np.square(np.asarray(problem.residuals(problem.u0)))))
     assert cost["after"] < 0.2 * cost["before"]
-    assert cfg.relocated_lags(cfg._constrain(truth), ds, free, args) is None
+    assert relocated_lags(cfg, cfg.constrain(truth), ds, free, args) is None
     # the search itself: the truth's time constants are on no grid point, so a grid set fits worse than they do
     get = lambda m: m.creep  # noqa: E731
     assert _lag_search(truth, get, "creep", cfg.kind("creep"), ds, args) is None
     # time constants held: nothing to move
-    assert cfg.relocated_lags(cfg._constrain(fitted), ds, [p for p in free if p != "creep.time_constants"],
+    assert relocated_lags(cfg, cfg.constrain(fitted), ds, [p for p in free if p != "creep.time_constants"],
                               args) is None
 
 

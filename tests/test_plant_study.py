@@ -11,8 +11,9 @@ import pytest
 import fitting
 import piezojax as pj
 from experiments import plant_study as ps
-from fitting._config import StartWarning, _start_error, parse_config
-from fitting._kinds import BoucWenKind, StartData, _bouc_wen_grid
+from fitting._config import StartData, StartWarning, parse_config
+from fitting._config.kinds.hysteresis import BoucWenKind, _bouc_wen_grid
+from fitting._config.model_config import _start_error
 
 
 @pytest.fixture(scope="module")

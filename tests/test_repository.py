@@ -80,6 +80,21 @@ FITTING_ALLOWED = {"piezojax._checks", "piezojax._dtypes", "piezojax._config", "
                    "piezojax._hysteresis.initialise"}
 
 
+def _private_name_of_another_part(path: pathlib.Path, name: str) -> bool:
+    """Whether `name`, imported by `path` inside `fitting`, is a private name (not a module) defined in another part of
+    `fitting`: a flat module other than `path`, or a package other than the one `path` sits in. Within a package its
+    modules share private helpers, as equinox's and optimistix's do."""
+    parts = name.split(".")
+    if parts[0] != "fitting" or parts[-1][:1] != "_" or parts[-1].startswith("__"):
+        return False
+    module = ROOT.joinpath(*parts[:-1])
+    if (ROOT.joinpath(*parts).with_suffix(".py").exists() or ROOT.joinpath(*parts).is_dir()
+            or not (module.with_suffix(".py").exists() or module.is_dir())):
+        return False  # a module or package, not a name defined in one
+    own = path.relative_to(ROOT).with_suffix("").parts
+    return parts[:2] != list(own[:2]) or len(own) == 2 and own[1] != "__init__" and parts[:-1] != list(own)
+
+
 def test_layers_import_only_what_the_layout_allows():
     problems = []
     for folder, allowed in ALLOWED.items():
@@ -98,16 +113,16 @@ def test_layers_import_only_what_the_layout_allows():
         for name in _imports(path):
             if name.startswith("piezojax._") and name.split(".")[1] not in FOUNDATIONS:
                 problems.append(f"{path.relative_to(ROOT)} (a foundation) imports {name}")
-    for path in sorted((ROOT / "fitting").glob("*.py")) + sorted((ROOT / "experiments").glob("*.py")):
+    for path in sorted((ROOT / "fitting").rglob("*.py")) + sorted((ROOT / "experiments").glob("*.py")):
+        in_fitting = path.relative_to(ROOT).parts[0] == "fitting"
         for name in _imports(path):
             if name.startswith("piezojax._benches"):
                 problems.append(f"{path.relative_to(ROOT)} imports {name}")
-            if path.parent.name == "fitting" and name.startswith("piezojax._") and not name.startswith(
+            if in_fitting and name.startswith("piezojax._") and not name.startswith(
                     "piezojax.__") and not any(
                     name == a or name.startswith(a + ".") for a in FITTING_ALLOWED):
                 problems.append(f"{path.relative_to(ROOT)} imports {name} (README, Layout: fitting)")
-            if path.parent.name == "fitting" and name.startswith("fitting.") and name.rsplit(".", 1)[1][:1] == "_" \
-                    and name.count(".") == 2:
+            if in_fitting and _private_name_of_another_part(path, name):
                 problems.append(f"{path.relative_to(ROOT)} imports the private name {name} of another module")
             if path.parent.name == "experiments" and name.startswith("fitting._"):
                 problems.append(f"{path.relative_to(ROOT)} imports {name} (use fitting's public API)")

@@ -777,7 +777,7 @@ def test_cold_start_on_the_real_record_and_fallback(monkeypatch):
     def broken(*args, **kwargs):
         raise pj.PiezojaxValueError("`stiffnesses` must be finite and > 0, got [inf, inf]")
 
-    monkeypatch.setattr("fitting._initialise.cold_start_actuator", broken)
+    monkeypatch.setattr("fitting._config.kinds.base.cold_start_actuator", broken)
     cfg = fitting.parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n[creep]\nkind = "kelvin_voigt"\n'
                                "order = 1\n[dynamics]\norder = 2\n", "pc.toml")
     with pytest.warns(fitting._config.StartWarning, match="pc.toml: the data-driven cold start failed"):

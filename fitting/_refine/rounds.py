@@ -5,8 +5,10 @@ again from the last and kept only when it lowers the cost (`refine`); the kept r
 import dataclasses
 from collections.abc import Callable
 
-from ._solve import fit
-from ._solver import HARD_FAILURES
+from .._solve import fit
+from .._solver import HARD_FAILURES
+from .lags import relocated_lags
+from .plays import reseeded
 
 # at most this many re-seeded fits after the first (each kept only when it lowers the cost), another only after one
 # that lowered the cost by more than this fraction
@@ -17,17 +19,17 @@ def _one_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {' '.join(str(e).split())}"
 
 
-def _silent(message: str, *, warning: bool = False) -> None:
+def silent(message: str, *, warning: bool = False) -> None:
     del message, warning
 
 
-def refine(config, result, dataset, free, fit_args: dict, *, log: Callable = _silent,
+def refine(config, result, dataset, free, fit_args: dict, *, log: Callable = silent,
            interrupted: Callable[[], bool] = lambda: False):
     """More fits from `result` with its hysteresis plays all placed anew where the residual needs them, or its dead
-    elements re-seeded (`ModelConfig.reseeded`: plays the fit left without weight, above the largest voltage, or on
+    elements re-seeded (`reseeded`: plays the fit left without weight, above the largest voltage, or on
     the threshold of another, placed where the residual needs them), or, when none is dead, one live element
     swapped where the residual needs it, and its creep lags moved where time constants elsewhere fit better
-    (`ModelConfig.relocated_lags`), each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last
+    (`relocated_lags`), each kept when its cost is lower; up to `RESEED_ROUNDS` rounds while the last
     was kept, lowered the cost by more than `RESEED_GAIN` and left elements dead, an element to swap or lags
     misplaced again (plays pulled onto one kink of the data's reversals can fall together in the re-seeded fit too).
 
@@ -52,10 +54,10 @@ def refine(config, result, dataset, free, fit_args: dict, *, log: Callable = _si
     rounds, stopped_by_interrupt, failure = [], False, None
     try:
         while len(rounds) < RESEED_ROUNDS:
-            again = config.reseeded(result.model, dataset, free, fit_args)
+            again = reseeded(config, result.model, dataset, free, fit_args)
             model, moved = again if again is not None else (result.model, 0)
             try:  # a failure here must not discard the plays re-seeded above
-                relocated = config.relocated_lags(model, dataset, free, fit_args)
+                relocated = relocated_lags(config, model, dataset, free, fit_args)
             except KeyboardInterrupt:
                 raise
             except Exception as e:  # noqa: BLE001 - an optional refinement; the fit so far stands

@@ -6,7 +6,7 @@
   voltage hysteresis (`displacement` and `charge` from `v_in`).
 
 Each declares its keys, the parameters a simulation needs, data-driven starts for the others, constraints and the
-default free set, as every `ModelKind` (`fitting._model_kinds`).
+default free set, as every `ModelKind` (`fitting/_config/kinds/models.py`).
 """
 
 import functools
@@ -16,16 +16,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
+import scipy
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
-from piezojax._hysteresis.initialise import nnls_gram, row_subset
+from piezojax import PiezojaxValueError
+from piezojax._hysteresis.initialise import MAX_ROWS, nnls_gram, row_subset
 
-from ._initialise import MAX_ROWS, dynamics_candidates, filter_pairs
-from ._kinds import MAX_ELEMENTS, MAX_SUBSTEPS, TINY, chord, f64
-from ._model_kinds import ModelKind, register_model_kind
-from ._predict import Predictor
+from ..._initialise import dynamics_candidates, filter_pairs
+from ..._predict import ExperimentArrays, Predictor, as_arrays, run_predictor
+from ..table import MAX_ELEMENTS, MAX_SUBSTEPS, TINY, StartWarning, chord, f64
+from .models import ModelKind
 
 MAX_COUPLING_DEGREE = 4
 
@@ -167,8 +167,6 @@ class BoucWenOscillatorKind(ModelKind):
 
 
 def _error(pred, model, experiments) -> float:
-    from ._predict import as_arrays, run_predictor
-
     total = 0.0
     for e in experiments:
         data = as_arrays([e], pred.inputs, model.m.dtype)
@@ -345,12 +343,6 @@ def _electromechanical_from_displacement(recs, m: float, n: int, capacitance: fl
 _EM_SCAN = ("b", "k", "t_em", "element_capacitances", "breakaway_voltages")
 
 
-def _start_warning() -> type[Warning]:
-    from ._config import StartWarning  # `_config` imports this module
-
-    return StartWarning
-
-
 def _optional_start(start, *args) -> dict | None:
     """`start(*args)`, or `None` where it fails on the records (the caller falls back to the next start; an
     interrupt still stops the fit)."""
@@ -367,8 +359,6 @@ def _optional_start(start, *args) -> dict | None:
 def _batched_simulation(predictor, m: float, capacitance: float, dt: float, n: int):
     """The displacement of `predictor` for a batch of electromechanical models (the `_EM_SCAN` values, one row
     each), compiled once per record length."""
-    from ._predict import ExperimentArrays
-
     def one(b, k, t_em, caps, volts, v):
         model = pj.ElectromechanicalActuator(m, b, k, capacitance, t_em[None], caps, volts)
         data = ExperimentArrays(t=jnp.arange(v.size, dtype=v.dtype) * dt, dt=jnp.asarray(dt, v.dtype), v_in=v,
@@ -524,7 +514,7 @@ class ElectromechanicalKind(ModelKind):
                                      "files with a 'charge' column")
         if not cap > 0:  # the charge does not rise with the voltage: no estimate, the fit starts from 1 uF
             warnings.warn(f"[model] electromechanical: the capacitance estimated from the charge is {cap:.3g} F (the "
-                          "charge does not rise with v_in); starting from the placeholder 1e-6 F", _start_warning(),
+                          "charge does not rise with v_in); starting from the placeholder 1e-6 F", StartWarning,
                           stacklevel=2)
             cap = float(self._placeholder(o)["capacitance"])
         # element j moves with the charge, dq = (C + T^2/k) dV_p quasi-statically: C_j = (C + T^2/k)/a_j
@@ -536,7 +526,7 @@ class ElectromechanicalKind(ModelKind):
         """The placeholder values with a `StartWarning` saying `why` the data-driven start found none (a start must
         not end the run)."""
         warnings.warn(f"[model] electromechanical: the data-driven start failed ({why}); starting from the "
-                      "placeholder values", _start_warning(), stacklevel=3)
+                      "placeholder values", StartWarning, stacklevel=3)
         return self._placeholder(o)
 
     @staticmethod
@@ -568,7 +558,3 @@ class ElectromechanicalKind(ModelKind):
             # small term T x / C of the charge separate them)
             free = [p for p in free if p != "capacitance"]
         return free
-
-
-register_model_kind(BoucWenOscillatorKind())
-register_model_kind(ElectromechanicalKind())
