@@ -68,7 +68,6 @@ def reusable(out: Path) -> bool:
 
 def fitted_models(folder: Path) -> dict[str, pj.Actuator]:
     """Fit (or reuse) both models in `folder/truth` and `folder/compensator`; return them in SI units."""
-    from fitting.cli import load_fitted
 
     models = {}
     for name, config in CONFIGS.items():
@@ -78,7 +77,7 @@ def fitted_models(folder: Path) -> dict[str, pj.Actuator]:
             folder.mkdir(parents=True, exist_ok=True)
             _fit(config, out, overwrite=out.exists())  # an interrupted fit of this script: refit in place
             print(f"fitted {name} ({config.name}) in {time.perf_counter() - t0:.0f} s")
-        models[name] = pj.unwrap(load_fitted(out)[1])
+        models[name] = pj.unwrap(fitting.load_fit(out).model)
     return models
 
 

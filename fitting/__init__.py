@@ -38,6 +38,7 @@ _EXPORTS = {
         "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "load_experiment",
         "save_experiment",
     ),
+    "._fit_folder": ("FitFolder", "load_fit"),
     "._fleet": ("FleetResult", "fit_fleet"),
     "._initialise": ("cold_start_actuator", "cold_start_free"),
     "._plots": (
@@ -101,6 +102,7 @@ if TYPE_CHECKING:  # the same names for static analysis
         load_experiment as load_experiment,
         save_experiment as save_experiment,
     )
+    from ._fit_folder import FitFolder as FitFolder, load_fit as load_fit
     from ._fleet import FleetResult as FleetResult, fit_fleet as fit_fleet
     from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
     from ._plots import (

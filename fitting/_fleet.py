@@ -33,8 +33,10 @@ import jax.tree_util as jtu
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from piezojax._checks import PiezojaxValueError, refusals_as_nan
+from piezojax import PiezojaxValueError
+from piezojax.internal import refusals_as_nan
 
+from ._data import Dataset
 from ._problem import (
     Problem,
     ProblemCore,
@@ -344,26 +346,12 @@ def fit_fleet(
     print(result.report()); print(result[3].report())
     ```
     """
-    from ._data import Dataset
-
     for name, value, low in (("max_steps", max_steps, 1), ("steps_per_call", steps_per_call, 1),
                              ("max_rejections", max_rejections, 1)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
             raise PiezojaxValueError(f"`{name}` must be an integer >= {low}, got {value!r}")
-    if isinstance(datasets, Dataset) or not isinstance(datasets, Sequence) or len(datasets) == 0:
-        raise PiezojaxValueError("`datasets` must be a non-empty sequence with one dataset per actuator")
-    datasets = [d if isinstance(d, Dataset) else Dataset(list(d)) for d in datasets]
+    datasets, starts = _fleet_inputs(model, datasets, starts)
     n = len(datasets)
-    if starts is None:
-        starts = [model] * n
-    else:
-        starts = list(starts)
-        if len(starts) != n:
-            raise PiezojaxValueError(f"`starts` must list one model per actuator ({n}), got {len(starts)}")
-        for i, s in enumerate(starts):
-            if jtu.tree_structure(s) != jtu.tree_structure(model):
-                raise PiezojaxValueError(f"`starts[{i}]` does not have the structure of `model` (same blocks, "
-                                         "parameter shapes and reparametrisations)")
     devices_given = devices is not None
     devices = list(jax.devices()) if devices is None else list(devices)
     if not devices:
@@ -374,97 +362,174 @@ def fit_fleet(
             batch_size % len(devices)):
         raise PiezojaxValueError(f"`batch_size` must be a positive multiple of the number of devices "
                                  f"({len(devices)}), got {batch_size!r}")
-    batch_size = int(batch_size)
     solver = make_solver(method, rtol, atol, ftol, linear_solver)
-    window = 5
     meter = as_progress_meter(progress)
     explicit = not isinstance(scales, str)
     if not explicit and scales not in ("jacobian", "value"):
         raise PiezojaxValueError(f'`scales` must be "jacobian", "value" or an array, got {scales!r}')
+    actuators = _Actuators.build(starts, datasets, predictor=predictor, targets=targets, free=free, weights=weights,
+                                 jacobian_chunk=jacobian_chunk)
+    fleet = _Stacked.build(actuators, scales if explicit else "value", devices, devices_given, int(batch_size),
+                           jacobian_scaling=not explicit and scales == "jacobian")
+    batches, interrupted, seconds = _run_batches(fleet, solver, max_rejections=max_rejections, max_steps=max_steps,
+                                                 steps_per_call=steps_per_call, meter=meter)
+    return _fleet_result(fleet, actuators, batches, solver, max_steps=max_steps, interrupted=interrupted,
+                         seconds=seconds, devices=len(devices))
 
-    # one problem per actuator, each with the channel weights of its own records (so that its fit is the one
-    # `fitting.fit` makes: a solver's path depends on the weights' scale through the step size) and the value
-    # scaling (the Jacobian scaling is computed below for the whole fleet at once)
-    first = Problem(starts[0], datasets[0], predictor=predictor, targets=targets, free=free, weights=weights,
-                    scales="value", jacobian_chunk=jacobian_chunk)
-    targets = first.targets
 
-    def weights_of(i):
+_WINDOW = 5  # accepted steps over which the loop's flat-cost test averages, as `iterate`'s default
+
+
+def _fleet_inputs(model, datasets, starts) -> tuple[list, list]:
+    """`fit_fleet`'s datasets (one `Dataset` per actuator) and starts (one model per actuator, `model`'s structure)."""
+    if isinstance(datasets, Dataset) or not isinstance(datasets, Sequence) or len(datasets) == 0:
+        raise PiezojaxValueError("`datasets` must be a non-empty sequence with one dataset per actuator")
+    datasets = [d if isinstance(d, Dataset) else Dataset(list(d)) for d in datasets]
+    n = len(datasets)
+    if starts is None:
+        return datasets, [model] * n
+    starts = list(starts)
+    if len(starts) != n:
+        raise PiezojaxValueError(f"`starts` must list one model per actuator ({n}), got {len(starts)}")
+    for i, s in enumerate(starts):
+        if jtu.tree_structure(s) != jtu.tree_structure(model):
+            raise PiezojaxValueError(f"`starts[{i}]` does not have the structure of `model` (same blocks, "
+                                     "parameter shapes and reparametrisations)")
+    return datasets, starts
+
+
+@dataclasses.dataclass(frozen=True)
+class _Actuators:
+    """The fleet's actuators: each one's start and records, the options they share, and each one's channel weights
+    (from its own records, so that its fit is the one `fitting.fit` makes: a solver's path depends on the weights'
+    scale through the step size)."""
+
+    starts: list
+    datasets: list
+    predictor: Any
+    targets: tuple
+    free: Any
+    weights: list
+    jacobian_chunk: int | None
+
+    @classmethod
+    def build(cls, starts, datasets, *, predictor, targets, free, weights, jacobian_chunk) -> "_Actuators":
+        first = Problem(starts[0], datasets[0], predictor=predictor, targets=targets, free=free, weights=weights,
+                        scales="value", jacobian_chunk=jacobian_chunk)
+        targets = first.targets
+
+        def weights_of(i):
+            try:
+                return channel_weights(list(datasets[i]), targets, weights)
+            except PiezojaxValueError as e:
+                raise PiezojaxValueError(f"actuator {i}: {e}") from e
+
+        per_actuator = [dict(first.weights)] + [weights_of(i) for i in range(1, len(datasets))]
+        return cls(starts, datasets, first.predictor, targets, free, per_actuator, jacobian_chunk)
+
+    def problem(self, i: int, scales) -> Problem:
+        """Actuator `i`'s problem with the parameter scaling `scales`."""
         try:
-            return channel_weights(list(datasets[i]), targets, weights)
+            return Problem(self.starts[i], self.datasets[i], predictor=self.predictor, targets=self.targets,
+                           free=self.free, weights=self.weights[i], scales=scales, jacobian_chunk=self.jacobian_chunk)
         except PiezojaxValueError as e:
             raise PiezojaxValueError(f"actuator {i}: {e}") from e
 
-    per_actuator = [dict(first.weights)] + [weights_of(i) for i in range(1, n)]
 
-    def problem(i, scales_i):
-        try:
-            return Problem(starts[i], datasets[i], predictor=first.predictor, targets=targets, free=free,
-                           weights=per_actuator[i], scales=scales_i, jacobian_chunk=jacobian_chunk)
-        except PiezojaxValueError as e:
-            raise PiezojaxValueError(f"actuator {i}: {e}") from e
+@dataclasses.dataclass(frozen=True)
+class _Stacked:
+    """The actuators' problems stacked along a leading fleet axis (padded to whole batches with copies of the first,
+    which do not run), their frozen leaves shared by all where equal, placed on the devices."""
 
-    def mismatch(i):
-        return (f"`datasets[{i}]` does not have the layout of `datasets[0]`: every actuator needs the same number of "
-                "records, of the same lengths in samples and with the same channels (the same test protocol)")
+    statics: Any
+    arrays: Any
+    shared: Any
+    u0: jax.Array
+    theta0: jax.Array
+    padding: jax.Array
+    mesh: Mesh | None
+    device: Any
+    batch_size: int
+    n: int
+    jacobian_scaling: bool
 
-    problems = [problem(i, scales if explicit else "value") for i in range(n)]
-    statics, arrays = _stack([p.core for p in problems], mismatch)
-    u0 = jnp.stack([p.u0 for p in problems])
-    theta0 = jnp.stack([p.theta0 for p in problems])  # to rescale the starts exactly (powers of two)
-    del problems  # their data live on in `arrays`; a `FitResult` rebuilds one on demand
-    if u0.dtype != jnp.float64:
-        warnings.warn(f"fitting in {u0.dtype}: JAX's 64-bit mode is off (see fitting.solve)", PrecisionWarning,
-                      stacklevel=caller_level())
-    mesh = Mesh(np.array(devices), ("fleet",)) if len(devices) > 1 else None
-    total = n + (-n) % batch_size
-    padding = jnp.arange(total) >= n
-    if total > n:  # padded with copies of the first actuator, which do not run
-        arrays, u0, theta0 = jtu.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], total - n, axis=0)]),
-                                          (arrays, u0, theta0))
+    @classmethod
+    def build(cls, actuators: _Actuators, scales, devices, devices_given: bool, batch_size: int, *,
+              jacobian_scaling: bool) -> "_Stacked":
+        # value scaling, or the given scales (the Jacobian scaling is computed batch by batch for the whole fleet)
+        n = len(actuators.datasets)
 
-    device = devices[0] if devices_given and len(devices) == 1 else None
-    statics, arrays, shared = _share_frozen(statics, arrays)
-    if mesh is not None or device is not None:  # the shared leaves: one copy on each device
-        where = device if mesh is None else NamedSharding(mesh, PartitionSpec())
-        statics = jtu.tree_map(lambda x: jax.device_put(x, where) if eqx.is_array(x) else x, statics)
+        def mismatch(i):
+            return (f"`datasets[{i}]` does not have the layout of `datasets[0]`: every actuator needs the same number "
+                    "of records, of the same lengths in samples and with the same channels (the same test protocol)")
 
-    def begin_batch(b0):
-        """Batch `b0`'s arrays (sharded; rescaled by its Jacobian) and its initial loop state."""
-        part = slice(b0, b0 + batch_size)
-        arr_b, u_b, th_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (arrays, u0, theta0, padding)), mesh,
-                                         device)
-        if not explicit and scales == "jacobian":
-            lin = _fleet_linearise(statics, arr_b, u_b)
+        problems = [actuators.problem(i, scales) for i in range(n)]
+        statics, arrays = _stack([p.core for p in problems], mismatch)
+        u0 = jnp.stack([p.u0 for p in problems])
+        theta0 = jnp.stack([p.theta0 for p in problems])  # to rescale the starts exactly (powers of two)
+        del problems  # their data live on in `arrays`; a `FitResult` rebuilds one on demand
+        if u0.dtype != jnp.float64:
+            warnings.warn(f"fitting in {u0.dtype}: JAX's 64-bit mode is off (see fitting.solve)", PrecisionWarning,
+                          stacklevel=caller_level())
+        mesh = Mesh(np.array(devices), ("fleet",)) if len(devices) > 1 else None
+        total = n + (-n) % batch_size
+        padding = jnp.arange(total) >= n
+        if total > n:  # padded with copies of the first actuator, which do not run
+            arrays, u0, theta0 = jtu.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], total - n, axis=0)]),
+                                              (arrays, u0, theta0))
+        device = devices[0] if devices_given and len(devices) == 1 else None
+        statics, arrays, shared = _share_frozen(statics, arrays)
+        if mesh is not None or device is not None:  # the shared leaves: one copy on each device
+            where = device if mesh is None else NamedSharding(mesh, PartitionSpec())
+            statics = jtu.tree_map(lambda x: jax.device_put(x, where) if eqx.is_array(x) else x, statics)
+        return cls(statics, arrays, shared, u0, theta0, padding, mesh, device, batch_size, n, jacobian_scaling)
+
+    @property
+    def total(self) -> int:
+        return self.padding.shape[0]
+
+    def begin_batch(self, solver, b0: int) -> dict:
+        """The batch from actuator `b0` on, placed and initialised (with the fleet's Jacobian scaling)."""
+        part = slice(b0, b0 + self.batch_size)
+        arr_b, u_b, th_b, pad_b = _shard(jtu.tree_map(lambda x: x[part], (self.arrays, self.u0, self.theta0,
+                                                                          self.padding)), self.mesh, self.device)
+        if self.jacobian_scaling:
+            lin = _fleet_linearise(self.statics, arr_b, u_b)
             old = np.asarray(arr_b.scales)
             new = jacobian_scales(old, lin.h).astype(old.dtype)
-            u_b = _shard(jnp.asarray(np.asarray(th_b) / new), mesh, device)  # the same starts, exactly
-            arr_b = _shard(eqx.tree_at(lambda a: a.scales, arr_b, jnp.asarray(new)), mesh, device)
-        carry = _fleet_init(solver, window, statics, arr_b, u_b, pad_b)
+            u_b = _shard(jnp.asarray(np.asarray(th_b) / new), self.mesh, self.device)  # the same starts, exactly
+            arr_b = _shard(eqx.tree_at(lambda a: a.scales, arr_b, jnp.asarray(new)), self.mesh, self.device)
+        carry = _fleet_init(solver, _WINDOW, self.statics, arr_b, u_b, pad_b)
         return {"carry": carry, "arrays": arr_b, "initial": np.asarray(carry.lin.cost), "finished": False}
 
-    def not_begun(b0):
-        """Batch `b0` after Ctrl-C: its starts, not linearised (NaN costs and linearisation)."""
-        part = slice(b0, b0 + batch_size)
-        arr_b, u_b, pad_b = jtu.tree_map(lambda x: x[part], (arrays, u0, padding))
-        shapes = eqx.filter_eval_shape(_fleet_init, solver, window, statics, arr_b, u_b, pad_b)
+    def not_begun(self, solver, b0: int) -> dict:
+        """A batch that Ctrl-C kept from starting: its starts, every other number NaN."""
+        part = slice(b0, b0 + self.batch_size)
+        arr_b, u_b, pad_b = jtu.tree_map(lambda x: x[part], (self.arrays, self.u0, self.padding))
+        shapes = eqx.filter_eval_shape(_fleet_init, solver, _WINDOW, self.statics, arr_b, u_b, pad_b)
         carry = jtu.tree_map(lambda x: jnp.full(x.shape, np.nan if jnp.issubdtype(x.dtype, jnp.inexact) else 0,
                                                 x.dtype), shapes)
         code = jnp.where(pad_b, PADDING, RUNNING).astype(jnp.int32)
         carry = eqx.tree_at(lambda c: (c.y, c.book.code), carry, (u_b, code))
         return {"carry": carry, "arrays": arr_b, "initial": np.full(u_b.shape[0], np.nan), "finished": False}
 
+
+def _run_batches(fleet: _Stacked, solver, *, max_rejections: int, max_steps: int, steps_per_call: int,
+                 meter) -> tuple[list[dict], bool, float]:
+    """Each batch stepped `steps_per_call` compiled steps at a time until its actuators stop or `max_steps`:
+    `(batches, interrupted, seconds)`; after Ctrl-C the batches not begun are filled in."""
+    n, batch_size = fleet.n, fleet.batch_size
     batches, t0, interrupted = [], time.perf_counter(), False
     meter_state = meter.init("[fleet] ", n)
     with refusals_as_nan():
         try:
-            for b0 in range(0, total, batch_size):
-                batches.append(begin_batch(b0))
+            for b0 in range(0, fleet.total, batch_size):
+                batches.append(fleet.begin_batch(solver, b0))
                 batch = batches[-1]
                 done = 0
                 while done < max_steps:
                     for _ in range(min(steps_per_call, max_steps - done)):  # dispatched without waiting
-                        batch["carry"] = _fleet_step(solver, window, max_rejections, statics, batch["arrays"],
+                        batch["carry"] = _fleet_step(solver, _WINDOW, max_rejections, fleet.statics, batch["arrays"],
                                                      batch["carry"])
                     done = min(done + steps_per_call, max_steps)
                     codes = np.asarray(batch["carry"].book.code)
@@ -480,10 +545,16 @@ def fit_fleet(
             interrupted = True
         finally:
             meter.close(meter_state)
-    for b0 in range(len(batches) * batch_size, total, batch_size):  # after Ctrl-C: the batches not begun
-        batches.append(not_begun(b0))
+    for b0 in range(len(batches) * batch_size, fleet.total, batch_size):  # after Ctrl-C: the batches not begun
+        batches.append(fleet.not_begun(solver, b0))
     jax.block_until_ready([b["carry"] for b in batches])
-    seconds = time.perf_counter() - t0
+    return batches, interrupted, time.perf_counter() - t0
+
+
+def _fleet_result(fleet: _Stacked, actuators: _Actuators, batches: list[dict], solver, *, max_steps: int,
+                  interrupted: bool, seconds: float, devices: int) -> "FleetResult":
+    """The batches joined into one `FleetResult`, with each actuator's verdict."""
+    n = fleet.n
     # an actuator still running when the loop ended: interrupted, unless its batch ran to max_steps
     cut = np.concatenate([np.full(b["carry"].book.code.shape[0], not b["finished"]) for b in batches])[:n]
 
@@ -493,10 +564,11 @@ def fit_fleet(
     carry = joined(lambda b: b["carry"])
     core_arrays = joined(lambda b: b["arrays"])
     # the result's problems hold every array per actuator: the shared frozen leaves repeated along the fleet axis
-    stacked = jtu.tree_map(lambda x: jnp.broadcast_to(x, (n, *x.shape)), shared)
+    stacked = jtu.tree_map(lambda x: jnp.broadcast_to(x, (n, *x.shape)), fleet.shared)
     core_arrays = eqx.tree_at(lambda c: c.frozen, core_arrays, eqx.combine(stacked, core_arrays.frozen),
                               is_leaf=lambda x: x is None)
-    statics = eqx.tree_at(lambda c: c.frozen, statics, eqx.filter(statics.frozen, eqx.is_array, inverse=True),
+    statics = eqx.tree_at(lambda c: c.frozen, fleet.statics, eqx.filter(fleet.statics.frozen, eqx.is_array,
+                                                                         inverse=True),
                           is_leaf=lambda x: x is None)
     core = eqx.combine(core_arrays, statics)
     initial_cost = np.concatenate([b["initial"] for b in batches])[:n]
@@ -504,19 +576,20 @@ def fit_fleet(
     codes = np.asarray(carry.book.code)
     since = np.asarray(carry.book.since)
     stalled_note = ", or a kink of an exact operator: refit with fitting.solve"
-    verdicts = [verdict_of(int(c), solver=solver, window=window, since=int(k), max_steps=max_steps,
+    verdicts = [verdict_of(int(c), solver=solver, window=_WINDOW, since=int(k), max_steps=max_steps,
                            interrupted=interrupted and bool(cut[i]), stalled_note=stalled_note)
                 for i, (c, k) in enumerate(zip(codes, since))]
     # as `fitting.solve`: an actuator stopped by max_steps whose cost no longer falls by what its data resolve
     accepted = np.asarray(carry.book.accepted)
     tails = np.asarray(carry.tail)
-    rmse = _rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in per_actuator]) for c in targets})
+    targets = actuators.targets
+    rmse = _rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in actuators.weights]) for c in targets})
     m = np.asarray(residual_counts(core.groups))
     verdicts = [settled(v, list(tails[i][-1 - min(int(accepted[i]), SETTLED_WINDOW):]), int(carry.steps[i]),
                         int(m[i]), int(carry.y.shape[1])) for i, v in enumerate(verdicts)]
     for i, v in enumerate(verdicts):
         if v.code == "nonfinite_initial":  # the model's own message, from a trace that raises
-            why = model_error(problem(i, scales_np[i]).core, carry.y[i])
+            why = model_error(actuators.problem(i, scales_np[i]).core, carry.y[i])
             verdicts[i] = Verdict(v.code, v.reason + (f" ({why})" if why else ""))
     params = jax.vmap(lambda c, u: c.params(u))(core, carry.y)
     model_out = jax.vmap(lambda c, u: c.model_at(u))(core, carry.y)
@@ -532,8 +605,8 @@ def fit_fleet(
         cost=np.asarray(carry.lin.cost),
         rmse=rmse,
         seconds=seconds,
-        devices=len(devices),
-        _problem=lambda i: problem(i, scales_np[i]),  # actuator i's problem in the fleet's scaling, on demand
+        devices=devices,
+        _problem=lambda i: actuators.problem(i, scales_np[i]),  # actuator i's problem in the fleet's scaling
         _u=carry.y,
         _lin=carry.lin,
     )

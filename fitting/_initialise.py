@@ -15,9 +15,10 @@ import numpy as np
 import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
-from piezojax._creep.lags import lag_columns
-from piezojax._hysteresis.initialise import MAX_ROWS, check_max_rows, contiguous_runs, nnls_gram, row_subset
+from piezojax import PiezojaxValueError
+from piezojax.internal import MAX_ROWS, check_max_rows, contiguous_runs, lag_columns, nnls_gram, row_subset
+
+from ._data import Dataset
 
 # ----------------------------------------------------------------------------------------------------------------
 # linear building blocks (NumPy mirrors of the models' exact ZOH recursions)
@@ -228,7 +229,6 @@ def dynamics_candidates(records, order: int, max_rows: int | None = None) -> lis
 
 
 def _records(dataset):
-    from ._data import Dataset
 
     if not isinstance(dataset, Dataset):
         dataset = Dataset(list(dataset))
@@ -382,27 +382,7 @@ def cold_start_actuator(
     result = fitting.fit(init, dataset, free=free, weights="noise")
     ```
     """
-    for name, value, low in (
-        ("n_plays", n_plays, 1),
-        ("creep_order", creep_order, 0),
-        ("dynamics_order", dynamics_order, 0),
-    ):
-        if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < low:
-            raise PiezojaxValueError(f"`{name}` must be an integer >= {low}, got {value!r}")
-    if dynamics_order % 2:
-        raise PiezojaxValueError(
-            f"`dynamics_order` must be even (pole pairs; two real poles are an overdamped pair), got {dynamics_order}"
-        )
-    if structure not in ("parallel", "series"):
-        raise PiezojaxValueError(f"`structure` must be 'parallel' or 'series', got {structure!r}")
-    if creep not in ("kelvin_voigt", "lag"):
-        raise PiezojaxValueError(f"`creep` must be 'kelvin_voigt' or 'lag', got {creep!r}")
-    if creep == "lag" and structure != "series":
-        raise PiezojaxValueError("`creep='lag'` is DC-normalised: it needs `structure='series'`")
-    if not (isinstance(iterations, int) and iterations >= 0):
-        raise PiezojaxValueError(f"`iterations` must be an integer >= 0, got {iterations!r}")
-    if not (isinstance(grid_factor, int) and grid_factor >= 1):
-        raise PiezojaxValueError(f"`grid_factor` must be an integer >= 1, got {grid_factor!r}")
+    _check_orders(n_plays, creep_order, dynamics_order, structure, creep, iterations, grid_factor)
     check_max_rows(max_rows)
     recs = _records(dataset)
     vmax = max(float(np.max(np.abs(v))) for v, _, _ in recs)
@@ -465,6 +445,41 @@ def cold_start_actuator(
     if npairs:  # 5. final gains through the final dynamics
         w, c = compact_gains(compact_raw, taus, omega, zeta)
 
+    return _actuator(w, c, thresholds, taus, omega, zeta, recs=recs, vmax=vmax, creep=creep if creep_order else None,
+                     series=series, constrained=constrained)
+
+
+def _check_orders(n_plays, creep_order, dynamics_order, structure, creep, iterations, grid_factor) -> None:
+    """`cold_start_actuator`'s structural arguments checked."""
+    for name, value, low in (
+        ("n_plays", n_plays, 1),
+        ("creep_order", creep_order, 0),
+        ("dynamics_order", dynamics_order, 0),
+    ):
+        if not isinstance(value, int | np.integer) or isinstance(value, bool) or value < low:
+            raise PiezojaxValueError(f"`{name}` must be an integer >= {low}, got {value!r}")
+    if dynamics_order % 2:
+        raise PiezojaxValueError(
+            f"`dynamics_order` must be even (pole pairs; two real poles are an overdamped pair), got {dynamics_order}"
+        )
+    if structure not in ("parallel", "series"):
+        raise PiezojaxValueError(f"`structure` must be 'parallel' or 'series', got {structure!r}")
+    if creep not in ("kelvin_voigt", "lag"):
+        raise PiezojaxValueError(f"`creep` must be 'kelvin_voigt' or 'lag', got {creep!r}")
+    if creep == "lag" and structure != "series":
+        raise PiezojaxValueError("`creep='lag'` is DC-normalised: it needs `structure='series'`")
+    if not (isinstance(iterations, int) and iterations >= 0):
+        raise PiezojaxValueError(f"`iterations` must be an integer >= 0, got {iterations!r}")
+    if not (isinstance(grid_factor, int) and grid_factor >= 1):
+        raise PiezojaxValueError(f"`grid_factor` must be an integer >= 1, got {grid_factor!r}")
+
+
+def _actuator(w, c, thresholds, taus, omega, zeta, *, recs, vmax: float, creep: str | None, series: bool,
+              constrained: bool):
+    """The `pj.Actuator` of `cold_start_actuator` from its identified gains (`w`: `[w0, w_1..n]`, `c`: creep gains),
+    thresholds, time constants and dynamics (`omega` None: no dynamics block; `creep` None: no creep block),
+    reparametrised unless `constrained` is False."""
+    creep_order, npairs = (0 if creep is None else len(taus)), omega is not None
     # strictly positive gains, so that the Positive reparametrisation can start from them; the floor is relative to
     # the data's own scale (|y| per volt), so that a fit that put no weight on the hysteresis still gives finite
     # creep stiffnesses (their inverses)
@@ -477,7 +492,7 @@ def cold_start_actuator(
         c = np.maximum(c, 1e-3 * max(float(np.max(c)), 1e-3 * (1.0 if series else top)))
 
     f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
-    if creep_order and creep == "lag":
+    if creep == "lag":
         # (1 + sum c_j L_j) h = (1 - sum a_j + sum a_j L_j)(1 + sum c) h with a_j = c_j / (1 + sum c)
         total = 1.0 + float(np.sum(c))
         w0, weights = w0 * total, weights * total
@@ -494,7 +509,7 @@ def cold_start_actuator(
     model = pj.constrain(model, lambda m: m.hysteresis.weights, pj.Positive)
     model = pj.constrain(model, lambda m: m.hysteresis.w0, pj.Positive)
     model = pj.constrain(model, lambda m: m.hysteresis.thresholds, pj.OrderedPositive)
-    if creep_order and creep == "lag":
+    if creep == "lag":
         model = pj.constrain(model, lambda m: m.creep.fractions, pj.Fractions)
         model = pj.constrain(model, lambda m: m.creep.time_constants, pj.Positive)
     elif creep_order:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from piezojax._checks import PiezojaxValueError
+from piezojax import PiezojaxValueError
 
 from ._data import UNITS
 

@@ -10,7 +10,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
+from piezojax import PiezojaxValueError
+
+from ._data import Dataset, Experiment
 
 
 class ExperimentArrays(eqx.Module):
@@ -151,7 +153,6 @@ def predict(model, experiment, *, predictor: Predictor | None = None, history=()
     y = fitting.predict(result.model, test, history=train)["displacement"]
     ```
     """
-    from ._data import Dataset, Experiment
 
     if not isinstance(experiment, Experiment):
         raise PiezojaxValueError(f"`experiment` must be a fitting.Experiment, got {type(experiment).__name__}")

@@ -12,10 +12,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError, refusal_mode
-from piezojax._config import parallel_scans, scan_mode
-from piezojax._dtypes import common_float_dtype, matmul
+from piezojax import PiezojaxValueError
+from piezojax.internal import common_float_dtype, matmul, parallel_scans, refusal_mode, scan_mode
 
+from ._data import CHANNELS, Dataset, experiments_of
 from ._predict import ExperimentArrays, Predictor, default_predictor, predict
 
 
@@ -420,7 +420,6 @@ def channel_weights(experiments, targets: Sequence[str], weights) -> dict[str, f
     (`estimate_noise_std`, root mean square over the experiments); or a mapping with an entry for every target."""
     out = {}
     if isinstance(weights, Mapping):
-        from ._data import CHANNELS
 
         stray = [k for k in weights if k not in CHANNELS]  # a misspelt channel (another channel's is not used)
         if stray:
@@ -493,7 +492,6 @@ class Problem:
         scales: Array | str = "jacobian",
         jacobian_chunk: int | None = None,
     ):
-        from ._data import Dataset, experiments_of
 
         if not isinstance(dataset, Dataset):
             dataset = Dataset(experiments_of(dataset))

@@ -12,10 +12,15 @@ import jax.tree_util as jtu
 import numpy as np
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
+from piezojax import PiezojaxValueError
 
-from ._data import UNITS
+from . import _plots
+from ._config.table import Negative
+from ._data import UNITS, experiments_of
+from ._predict import predict
+from ._problem import estimate_noise_std, free_physical_tree, is_reparam, lost_columns, path_string
 from ._stationarity import max_gradient_cosine
+from .files import atomic_directory, save_json
 
 # A fit whose residual is this many times the records' white-noise level or more is reported as missing part of
 # what the data show. At the noise, the ratio is 1 within a few per cent: `estimate_noise_std` was within 5 % of the
@@ -37,7 +42,6 @@ def error_metrics(predicted: np.ndarray, measured: np.ndarray) -> dict[str, floa
 
 def _metrics(e: np.ndarray, measured: np.ndarray) -> dict[str, float | None]:
     """`error_metrics` from the errors `e` = predicted − measured."""
-    from ._problem import estimate_noise_std
 
     rng = float(np.ptp(measured))
     rmse = float(np.sqrt(np.mean(e**2)))
@@ -250,8 +254,6 @@ class FitResult:
         experiments or one `Experiment`), each after the records of `history`, by `fitting.predict` (e.g. the
         training record before a held-out record that continues it; `check_finite` as there). Any record length
         works. `result.predict(result.dataset)` are the fitted records' predictions."""
-        from ._data import experiments_of
-        from ._predict import predict
 
         out = []
         for e in experiments_of(dataset):
@@ -266,7 +268,6 @@ class FitResult:
         `overwrite=True` replaces only a folder written by an earlier `save` (or `piezojax fit`), recognised by its
         marker file, and holding nothing but what was written then (see `fitting.files.atomic_directory`); never the
         working directory or a folder containing it."""
-        from .files import atomic_directory
 
         path = Path(path)
         with atomic_directory(path, overwrite=overwrite, kind="fit") as tmp:
@@ -276,7 +277,6 @@ class FitResult:
     def write_files(self, folder, figures: bool = True, extra: dict | None = None, input_unit: str = "V") -> None:
         """Write the files of `save` into the existing folder `folder` (not atomically: for a caller that writes
         into a temporary folder of its own); `input_unit` as in `fitting.save_figures`."""
-        from .files import save_json
 
         folder = Path(folder)
         eqx.tree_serialise_leaves(folder / "model.eqx", self.params)
@@ -287,7 +287,6 @@ class FitResult:
         save_json(folder / "result.json", summary)
         (folder / "report.txt").write_text(self.report() + "\n")
         if figures:
-            from . import _plots
 
             _plots.save_figures(self, folder, input_unit=input_unit)
 
@@ -301,7 +300,6 @@ class FitResult:
         result.plot("loops", experiment="run3").savefig("loops.png")
         ```
         """
-        from . import _plots
 
         if kind == "timeseries":
             return _plots.plot_timeseries(self, experiment)
@@ -318,8 +316,6 @@ def _at_bound(problem, u) -> np.ndarray:
     """Per free parameter: an entry of a leaf constrained away from zero (`pj.Positive`, `pj.OrderedPositive`,
     `pj.Fractions`, negative poles) pressed against that bound, i.e. within 1e-9 of the largest magnitude in its
     leaf of zero (a dead play weight, a vanished lag fraction)."""
-    from ._config.table import Negative
-    from ._problem import free_physical_tree, is_reparam, path_string
 
     flags = []
     params = problem.params(u)
@@ -346,7 +342,6 @@ def model_structure(params) -> list[str]:
     """`"path: kind"` for every parameter leaf of `params`, the kind a reparametrisation's class name (e.g.
     `"hysteresis.thresholds: OrderedPositive"`) or `"array"`: what `load_model` checks `like` against, since the
     saved leaves alone cannot tell a constrained model's internal values from physical ones."""
-    from ._problem import is_reparam, path_string
 
     out = []
     for path, leaf in jtu.tree_flatten_with_path(params, is_leaf=is_reparam)[0]:
@@ -360,16 +355,23 @@ def model_structure(params) -> list[str]:
 def load_model(path, like):
     """Load the fitted (reparametrised) parameters saved by `FitResult.save` into a model of the structure of
     `like` (the model the fit started from, with the same reparametrisations: `pj.OrderedPositive`, ...), and
-    return the unwrapped model. A `like` whose parameters are reparametrised differently from the saved ones is an
-    error (when the folder's `result.json` records them), not a silent reading of internal values as physical."""
+    return the unwrapped model. The folder's `result.json` must be beside the model file: it records the saved
+    reparametrisations, and a `like` whose parameters are reparametrised differently is an error, not a silent
+    reading of internal values as physical (a missing `result.json` is an error naming it)."""
     path = Path(path)
     f = path / "model.eqx" if path.is_dir() else path
     if not f.exists():
         raise PiezojaxValueError(f"no saved model at {f}")
+    summary = f.parent / "result.json"
+    if not summary.is_file():
+        raise PiezojaxValueError(f"{str(summary)!r} is missing: it records how {f.name} stores the parameters (their "
+                                 "reparametrisations), without which its values cannot be read; keep the folder "
+                                 "`FitResult.save` wrote whole")
     try:
-        saved = json.loads((f.parent / "result.json").read_text(encoding="utf-8")).get("model_structure")
-    except (OSError, ValueError, AttributeError):
-        saved = None  # a model file on its own, or saved before the structure was recorded
+        saved = json.loads(summary.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise PiezojaxValueError(f"cannot read {str(summary)!r} ({e})") from e
+    saved = saved.get("model_structure") if isinstance(saved, dict) else None  # None: saved before it was recorded
     if isinstance(saved, list):
         given = model_structure(like)
         if saved != given:
@@ -408,7 +410,6 @@ def summarise(problem, u, lin, verdict, *, steps, accepted, history, seconds, le
     # `lost_columns`, zeroed): which directions the data determine, and the errors, then do not depend on the
     # solver's scaling of u, frozen at the start (measured before: the same Bouc–Wen optimum, started from n = 1 and
     # from n = 2, had A, beta and gamma determined to 0.2-6 % in one report and "infinite" in the other).
-    from ._problem import lost_columns
 
     diag = np.clip(np.diag(jtj), 0.0, None)
     # a lost column is judged in the start values' relative changes (value scaling), whatever the solver's scaling

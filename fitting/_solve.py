@@ -16,7 +16,7 @@ import numpy as np
 import optimistix as optx
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
+from piezojax import PiezojaxValueError
 
 from ._problem import Problem, matches, path_string
 from ._results import FitResult, summarise
@@ -217,62 +217,12 @@ def solve(
     compiled call. A problem whose parameters are not float64 (JAX's 64-bit mode off) is fitted, with a
     `fitting.PrecisionWarning`.
     """
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 1:
-        raise PiezojaxValueError(f"`max_steps` must be an integer >= 1, got {max_steps!r}")
-    if isinstance(kink_restarts, bool) or not isinstance(kink_restarts, int | np.integer) or kink_restarts < 0:
-        raise PiezojaxValueError(f"`kink_restarts` must be an integer >= 0, got {kink_restarts!r}")
+    levels = _levels(problem, smoothing, max_steps, kink_restarts)
     solver = make_solver(method, rtol, atol, ftol, linear_solver)
     meter = as_progress_meter(progress)
-    if smoothing is not None and (isinstance(smoothing, str | bytes) or np.ndim(smoothing) != 1):
-        raise PiezojaxValueError(f"`smoothing` must be a sequence of continuation levels (e.g. (0.05, 0.0)) or None, "
-                                 f"got {smoothing!r}")
-    levels = [None] if smoothing is None else list(smoothing)
-    if not levels:
-        raise PiezojaxValueError("`smoothing` must list at least one level (or be None)")
-    for s in levels:
-        if s is not None and not (np.isfinite(s) and s >= 0):
-            raise PiezojaxValueError(f"`smoothing` levels must be finite and >= 0, got {s}")
-    if smoothing is not None:
-        settings = [path_string(path) for path in pj.setting_key_paths(problem.model)]
-        freed = [n for n in problem.parameter_names() if any(matches(n, st) for st in settings)]
-        if freed:
-            raise PiezojaxValueError(f"`smoothing` levels set {freed[0]!r}, which `free` also fits: fix it (leave it "
-                                     "out of `free`) or give no levels")
-    if starts is None:
-        u = problem.u0[None]
-    else:
-        starts = list(starts)
-        if not starts:
-            raise PiezojaxValueError("`starts` must list at least one model (or be None: the problem's start)")
-        u = jnp.stack([problem.u_of(m, name=f"starts[{i}]") for i, m in enumerate(starts)])
-    if u.dtype != jnp.float64:
-        warnings.warn(
-            f"fitting in {u.dtype}: JAX's 64-bit mode is off, so the model, data and solver work in single precision "
-            "(about 7 digits: costs and steps below ~1e-7 relative are rounding, standard errors unreliable). Call "
-            "`jax.config.update('jax_enable_x64', True)` before creating models and data (the command line does); "
-            "to fit in single precision on purpose, filter `fitting.PrecisionWarning`.",
-            PrecisionWarning, stacklevel=caller_level())
+    u = _start_points(problem, starts)
     t0 = time.perf_counter()
-    frozen = problem.frozen
-    per_start: list[list] = [[] for _ in range(u.shape[0])]
-    level = problem
-    try:
-        for n_level, s in enumerate(levels):
-            if s is not None:
-                frozen = set_smoothing(frozen, s)
-            label = f"[smoothing {s:g}] " if s is not None else ""
-            next_level = problem.with_frozen(frozen)
-            runs = iterate(solver, next_level.core, u, max_steps=max_steps, meter=meter, label=label,
-                           outpace=n_level == len(levels) - 1)
-            level = next_level
-            for i, run in enumerate(runs):
-                per_start[i].append((s, run))
-            u = jnp.stack([run.u for run in runs])
-            if any(run.verdict.code == "interrupted" for run in runs) or all(run.verdict.hard for run in runs):
-                break
-    except KeyboardInterrupt:  # between the steps of two levels: the levels done so far are the result
-        if not per_start[0]:
-            raise  # no step taken yet: nothing to return but the start
+    per_start, level, label = _run_levels(solver, problem, u, levels, max_steps=max_steps, meter=meter)
     # (`_start_verdict` calls a start interrupted whose levels stopped early)
     # past kinks: where a start's steps stopped although the cost still falls along a probed direction by more than
     # the gtol test allows (the exact operators are piecewise smooth, and a joint step can keep crossing a kink), go
@@ -332,6 +282,76 @@ def solve(
     if throw and not result.success:
         raise FitError(result)
     return result
+
+
+def _levels(problem: Problem, smoothing, max_steps, kink_restarts) -> list:
+    """`solve`'s arguments checked; the continuation levels (`[None]`: the model's own smoothing)."""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int | np.integer) or max_steps < 1:
+        raise PiezojaxValueError(f"`max_steps` must be an integer >= 1, got {max_steps!r}")
+    if isinstance(kink_restarts, bool) or not isinstance(kink_restarts, int | np.integer) or kink_restarts < 0:
+        raise PiezojaxValueError(f"`kink_restarts` must be an integer >= 0, got {kink_restarts!r}")
+    if smoothing is not None and (isinstance(smoothing, str | bytes) or np.ndim(smoothing) != 1):
+        raise PiezojaxValueError(f"`smoothing` must be a sequence of continuation levels (e.g. (0.05, 0.0)) or None, "
+                                 f"got {smoothing!r}")
+    levels = [None] if smoothing is None else list(smoothing)
+    if not levels:
+        raise PiezojaxValueError("`smoothing` must list at least one level (or be None)")
+    for s in levels:
+        if s is not None and not (np.isfinite(s) and s >= 0):
+            raise PiezojaxValueError(f"`smoothing` levels must be finite and >= 0, got {s}")
+    if smoothing is not None:
+        settings = [path_string(path) for path in pj.setting_key_paths(problem.model)]
+        freed = [n for n in problem.parameter_names() if any(matches(n, st) for st in settings)]
+        if freed:
+            raise PiezojaxValueError(f"`smoothing` levels set {freed[0]!r}, which `free` also fits: fix it (leave it "
+                                     "out of `free`) or give no levels")
+    return levels
+
+
+def _start_points(problem: Problem, starts) -> jnp.ndarray:
+    """The scaled parameters of each start, shape `(starts, p)` (the problem's own start when `starts` is None)."""
+    if starts is None:
+        u = problem.u0[None]
+    else:
+        starts = list(starts)
+        if not starts:
+            raise PiezojaxValueError("`starts` must list at least one model (or be None: the problem's start)")
+        u = jnp.stack([problem.u_of(m, name=f"starts[{i}]") for i, m in enumerate(starts)])
+    if u.dtype != jnp.float64:
+        warnings.warn(
+            f"fitting in {u.dtype}: JAX's 64-bit mode is off, so the model, data and solver work in single precision "
+            "(about 7 digits: costs and steps below ~1e-7 relative are rounding, standard errors unreliable). Call "
+            "`jax.config.update('jax_enable_x64', True)` before creating models and data (the command line does); "
+            "to fit in single precision on purpose, filter `fitting.PrecisionWarning`.",
+            PrecisionWarning, stacklevel=caller_level())
+    return u
+
+
+def _run_levels(solver, problem: Problem, u, levels: list, *, max_steps: int, meter) -> tuple[list, Problem, str]:
+    """`iterate` at each continuation level from the previous level's points: `(per_start, level, label)` with
+    each start's `(smoothing, Run)` per level done, the problem at the last level run and its progress label. A
+    Ctrl-C between two levels ends with the levels done (re-raised before the first)."""
+    frozen = problem.frozen
+    per_start: list[list] = [[] for _ in range(u.shape[0])]
+    level, label = problem, ""
+    try:
+        for n_level, s in enumerate(levels):
+            if s is not None:
+                frozen = set_smoothing(frozen, s)
+            label = f"[smoothing {s:g}] " if s is not None else ""
+            next_level = problem.with_frozen(frozen)
+            runs = iterate(solver, next_level.core, u, max_steps=max_steps, meter=meter, label=label,
+                           outpace=n_level == len(levels) - 1)
+            level = next_level
+            for i, run in enumerate(runs):
+                per_start[i].append((s, run))
+            u = jnp.stack([run.u for run in runs])
+            if any(run.verdict.code == "interrupted" for run in runs) or all(run.verdict.hard for run in runs):
+                break
+    except KeyboardInterrupt:  # between the steps of two levels: the levels done so far are the result
+        if not per_start[0]:
+            raise  # no step taken yet: nothing to return but the start
+    return per_start, level, label
 
 
 def _start_name(i: int, n: int) -> str:

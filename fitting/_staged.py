@@ -7,8 +7,8 @@ import numpy as np
 import scipy  # submodules (signal, optimize, linalg) load on first use: importing them costs about a second
 
 import piezojax as pj
-from piezojax._checks import PiezojaxValueError
-from piezojax._creep.lags import lag_columns
+from piezojax import PiezojaxValueError
+from piezojax.internal import lag_columns
 
 from ._data import Experiment
 

@@ -7,6 +7,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._problem import lost_columns
 from ._solver import Linearisation, Verdict
 
 KINK_FTOL = 1e-5
@@ -98,7 +99,6 @@ def max_gradient_cosine(r, jtr, jtj) -> float:
     or no parameters). A column whose squared norm is below 1e-30 of the largest (`fitting._problem.lost_columns`)
     counts as zero (cosine 0, as MINPACK skips zero columns): there $J^\top J$'s diagonal has lost its digits
     (measured: a resonance's damping driven to 3e-199 on a record that never excites it gave a cosine of inf)."""
-    from ._problem import lost_columns
 
     r, jtr, jtj = (np.asarray(x) for x in (r, jtr, jtj))
     diag = np.clip(np.diag(jtj), 0.0, None)

@@ -46,22 +46,23 @@ from ._control.loop import (
 )
 from ._control.narx import NarxNetwork as NarxNetwork, train_narx_online as train_narx_online
 from ._control.pid import PID as PID
-from ._creep.base import AbstractCreep as AbstractCreep
+from ._creep.base import AbstractCreep as AbstractCreep, AbstractFusedCreep as AbstractFusedCreep
 from ._creep.kelvin_voigt import KelvinVoigtCreep as KelvinVoigtCreep
 from ._creep.lag import LagCreep as LagCreep
 from ._creep.linear import LinearCreep as LinearCreep
 from ._creep.logarithmic import LogarithmicCreep as LogarithmicCreep
 from ._custom_types import AbstractCell as AbstractCell
 from ._hysteresis.base import (
+    AbstractFusedHysteresis as AbstractFusedHysteresis,
     AbstractHysteresis as AbstractHysteresis,
     AbstractHysteresisCell as AbstractHysteresisCell,
+    HysteresisInverse as HysteresisInverse,
 )
 from ._hysteresis.bouc_wen import BoucWen as BoucWen
 from ._hysteresis.initialise import (
     pi_cold_start as pi_cold_start,
     pi_weights_least_squares as pi_weights_least_squares,
 )
-from ._hysteresis.inverse import HysteresisInverse as HysteresisInverse
 from ._hysteresis.maxwell_slip import MaxwellSlip as MaxwellSlip
 from ._hysteresis.play import (
     PlayOperator as PlayOperator,
@@ -74,7 +75,7 @@ from ._hysteresis.preisach import (
     Preisach as Preisach,
 )
 from ._hysteresis.scaled import ScaledHysteresis as ScaledHysteresis
-from ._linear.base import AbstractLinearSystem as AbstractLinearSystem
+from ._linear.base import AbstractLinearSystem as AbstractLinearSystem, StateSpace as StateSpace
 from ._linear.butterworth import butterworth as butterworth
 from ._linear.discretise import (
     DiscreteStateSpace as DiscreteStateSpace,
@@ -82,7 +83,6 @@ from ._linear.discretise import (
     time_step as time_step,
 )
 from ._linear.stable import StableTransferFunction as StableTransferFunction
-from ._linear.state_space import StateSpace as StateSpace
 from ._linear.transfer_function import TransferFunction as TransferFunction
 from ._nonlinear._input import (
     SampledInput as SampledInput,

@@ -1,25 +1,20 @@
 """The composed piezoelectric actuator: voltage → hysteresis → creep → dynamics → displacement, plus its charge."""
 
-from typing import TYPE_CHECKING
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from ._actuator_inverse import ActuatorInverse, actuator_inverse
 from ._checks import PiezojaxValueError, check_finite, check_positive, check_scalar, check_signal, check_step
 from ._config import use_parallel_scan
-from ._creep.base import AbstractCreep
-from ._creep.cells import ZOH_CELL_TYPES, zoh_cell
+from ._creep.base import AbstractCreep, AbstractFusedCreep
 from ._creep.linear import LinearCreep
 from ._custom_types import Signal, SignalLike
 from ._dtypes import cast_module, module_float_dtype
 from ._hysteresis.base import AbstractHysteresis
 from ._hysteresis.play import exact_cell, exact_flag
 from ._linear.base import AbstractLinearSystem
-
-if TYPE_CHECKING:
-    from ._actuator_inverse import ActuatorInverse
 
 _STRUCTURES = ("parallel", "series")
 
@@ -251,8 +246,6 @@ class Actuator(eqx.Module):
         v = inv(delta_desired, dt)               # actuator.simulate(v, dt).displacement ~ delta_desired
         ```
         """
-        from ._actuator_inverse import actuator_inverse
-
         return actuator_inverse(self, lower, upper, bandwidth, relative_degree, iterations, preview, max_iterations)
 
     # -------------------------------------------------------------------------------------------------------------
@@ -335,8 +328,9 @@ def _outputs(m: Actuator, v: Array, dt: Array, initial, delta: Array) -> Actuato
 
 def _one_loop(m: Actuator, v: Array, hold: str) -> bool:
     """Whether `simulate` runs the one-loop pass: zero-order hold, sequential loops (see `pj.set_parallel_scans`: by
-    default on the CPU, and for records shorter than `PARALLEL_MIN_LENGTH` on an accelerator), a play/stop-cell
-    hysteresis whose `smoothing` is a concrete 0 (or none), and a creep with a finite state (or none).
+    default on the CPU, and for records shorter than `PARALLEL_MIN_LENGTH` on an accelerator), an
+    `AbstractFusedHysteresis` whose `smoothing` is a concrete 0 (or none), and an `AbstractFusedCreep` (or none): the
+    blocks declare it.
 
     A traced `smoothing` (a fit's parameters, `eqx.filter_jit` over the model) keeps the block-by-block pass: choosing
     between the two passes at run time would compile both (measured on `experiments.bench_calibration`'s fit: 1.8 s
@@ -346,7 +340,7 @@ def _one_loop(m: Actuator, v: Array, hold: str) -> bool:
     if m.hysteresis is not None:
         if exact_cell(m.hysteresis) is None or exact_flag(m.hysteresis.smoothing) is not True:
             return False
-    return m.creep is None or isinstance(m.creep, ZOH_CELL_TYPES)
+    return m.creep is None or isinstance(m.creep, AbstractFusedCreep)
 
 
 def _one_loop_or_blocks(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOutput:
@@ -358,7 +352,7 @@ def _one_loop_or_blocks(m: Actuator, v: Array, dt: Array, initial) -> ActuatorOu
     if m.creep is not None:
         m = eqx.tree_at(lambda a: a.creep, m, m.creep.check())
     cells = (
-        None if m.creep is None else zoh_cell(m.creep, dt),
+        None if m.creep is None else m.creep.zoh_cell(dt),
         None if m.dynamics is None else m.dynamics.discretise(dt, "zoh"),
     )
     # Only traced values enter the custom_jvp: concrete ones (a concrete 0 smoothing above all) stay concrete for the

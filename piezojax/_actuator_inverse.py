@@ -1,18 +1,21 @@
 """The inverse of a whole actuator (hysteresis, creep and dynamics): feedforward voltage for a desired displacement."""
 
+from typing import TYPE_CHECKING
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, PyTree
 
-from ._actuator import Actuator
 from ._checks import PiezojaxValueError, check_signal, check_step, concrete_or_none
 from ._creep.logarithmic import causal_convolution
 from ._custom_types import Signal, SignalLike
 from ._dtypes import cast_module, module_float_dtype
-from ._hysteresis.base import AbstractHysteresis
-from ._hysteresis.inverse import HysteresisInverse
+from ._hysteresis.base import AbstractHysteresis, HysteresisInverse
 from ._linear.base import AbstractLinearSystem, default_inverse_bandwidth
+
+if TYPE_CHECKING:  # annotations only: `Actuator.inverse` builds the inverse, so this module does not import it
+    from ._actuator import Actuator
 
 
 class ActuatorInverse(eqx.Module):
@@ -53,7 +56,7 @@ class ActuatorInverse(eqx.Module):
     its own `init()`), `dynamics_inverse` (or `None`), `delay` [s], `lower`, `upper`, `iterations`, `preview`.
     """
 
-    actuator: Actuator
+    actuator: "Actuator"
     hysteresis_inverse: AbstractHysteresis | None
     hysteresis_state: PyTree[Array] | None
     dynamics_inverse: AbstractLinearSystem | None
@@ -174,7 +177,7 @@ def _fixed_point(update, x0: Array, iterations: int, structure: str) -> Array:
 
 
 def actuator_inverse(
-    actuator: Actuator,
+    actuator: "Actuator",
     lower: ArrayLike | None,
     upper: ArrayLike | None,
     bandwidth: ArrayLike | None,

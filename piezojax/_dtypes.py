@@ -11,6 +11,9 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import ArrayLike
 
+from ._checks import PiezojaxValueError
+from ._parametrisation import AbstractReparam
+
 
 def common_float_dtype(*xs: ArrayLike) -> np.dtype:
     """The floating dtype that holds every argument without loss (float32 stays float32).
@@ -57,9 +60,6 @@ def cast_module(module: eqx.Module, dtype) -> eqx.Module:
 def module_float_dtype(module: eqx.Module, *extra: ArrayLike):
     """The common floating dtype of a module's array leaves and `extra` arrays. A module holding reparametrised
     leaves (`pj.constrain`'s wrappers) cannot compute: `PiezojaxValueError` saying to `pj.unwrap` it."""
-    from ._checks import PiezojaxValueError
-    from ._parametrisation import AbstractReparam
-
     wrapped = [x for x in jtu.tree_leaves(module, is_leaf=lambda x: isinstance(x, AbstractReparam))
                if isinstance(x, AbstractReparam)]
     if wrapped:

@@ -109,6 +109,60 @@ def test_which_chains_take_the_one_loop_pass():
     assert_outputs_close(foh, blocks(act, V, hold="foh"), 0.0)
 
 
+def test_a_users_own_blocks_declare_the_one_loop_pass():
+    """Whether a block runs in the one loop is declared by its class (`pj.AbstractFusedHysteresis`,
+    `pj.AbstractFusedCreep`), so a user's own blocks take it as the built-in ones do, with the same outputs."""
+
+    class MyPlay(pj.AbstractHysteresisCell, pj.AbstractFusedHysteresis):  # a play of the user's own, by its cell
+        r: jax.Array
+        smoothing: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
+
+        def init(self):
+            return jnp.zeros((), self.r.dtype)
+
+        def step(self, y, v):
+            y = jnp.clip(y, v - self.r, v + self.r)
+            return y, y
+
+        def exact_step(self):
+            return self.step
+
+        def check(self):
+            return self
+
+    class MyLag(pj.AbstractFusedCreep):  # creep through the user's own first-order lag, given as a state space
+        gain: jax.Array
+        tau: jax.Array
+
+        def _system(self):
+            return pj.StateSpace([[-1 / self.tau]], [1 / self.tau], [self.gain], 0.0)
+
+        def _simulate(self, u, dt, hold):
+            return self._system().simulate(u, dt, hold=hold)
+
+        def step_response(self, t):
+            return self.gain * (1 - jnp.exp(-jnp.asarray(t) / self.tau))
+
+        def instantaneous_gain(self):
+            return jnp.zeros_like(self.gain)
+
+        def settled_gain(self):
+            return self.gain
+
+        def check(self):
+            return self
+
+        def zoh_cell(self, dt):
+            return self._system().discretise(dt, "zoh")
+
+    act = pj.Actuator(MyPlay(jnp.asarray(2.0)), MyLag(jnp.asarray(0.3), jnp.asarray(0.05)), DYN)
+    assert takes_one_loop(act)
+    assert_outputs_close(act.simulate(V, DT), blocks(act, V), 1e-12)
+    # a block that does not declare it runs block by block
+    plain = eqx.tree_at(lambda a: a.creep, act, pj.LogarithmicCreep(0.02, 1e-3))
+    assert not takes_one_loop(plain)
+
+
 def test_derivatives_are_the_blocks():
     act = CONFIGS["series scaled PI, lag creep, settled prehistory"]
     # every parameter traced but the smoothing, held at a concrete 0 (a traced one runs block by block)

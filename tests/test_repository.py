@@ -76,8 +76,8 @@ ALLOWED = {
 }
 
 
-FITTING_ALLOWED = {"piezojax._checks", "piezojax._dtypes", "piezojax._config", "piezojax._creep.lags",
-                   "piezojax._hysteresis.initialise"}
+# `fitting` uses the library through `piezojax` and its semi-public `piezojax.internal` only (README, Layout: fitting)
+FITTING_ALLOWED: set[str] = set()
 
 
 def _private_name_of_another_part(path: pathlib.Path, name: str) -> bool:
@@ -128,7 +128,7 @@ def test_layers_import_only_what_the_layout_allows():
                 problems.append(f"{path.relative_to(ROOT)} imports {name} (use fitting's public API)")
     assert not problems, "\n".join(problems)
     # the check sees real edges (a resolver that saw none would pass vacuously)
-    assert "piezojax._creep.lags.lag_columns" in _imports(ROOT / "fitting" / "_staged.py")
+    assert "piezojax.internal.lag_columns" in _imports(ROOT / "fitting" / "_staged.py")
     assert "piezojax._linear.base" in _imports(ROOT / "piezojax" / "_creep" / "linear.py")
 
 
@@ -170,3 +170,148 @@ def test_no_concrete_method_is_overridden():
     # the check saw the library's classes (one that found none would pass vacuously)
     assert len(classes) > 30, f"only {len(classes)} Module classes found"
     assert piezojax.PrandtlIshlinskii in classes and piezojax.AbstractHysteresis in classes
+
+
+# ------------------------------------------------------------------------------------------ the layout's limits
+
+MAX_FILE_LINES = 500  # lines of code in a module (docstrings, comments and blank lines not counted)
+MAX_FUNCTION_LINES = 100  # lines of code in a function
+
+
+def _code_lines(source: str, tree) -> set[int]:
+    """The line numbers of `source` that hold code: not a docstring, a comment or a blank line."""
+    import ast
+    import io
+    import tokenize
+
+    docs = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(
+                    first.value.value, str):
+                docs |= set(range(first.lineno, first.end_lineno + 1))
+    skip = {tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.ENDMARKER}
+    lines = set()
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type not in skip:
+            lines |= set(range(tok.start[0], tok.end[0] + 1))
+    return lines - docs
+
+
+def _modules(package: str) -> dict[str, pathlib.Path]:
+    """Every module of `package` by its dotted name (a package by its own name, for its `__init__.py`)."""
+    out = {}
+    for path in sorted((ROOT / package).rglob("*.py")):
+        parts = list(path.relative_to(ROOT).with_suffix("").parts)
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _import_edges(package: str) -> tuple[dict[str, set[str]], list[str]]:
+    """`(edges, inner)`: the modules of `package` each module imports when it is loaded (a name imported from a package
+    counts as its submodule when it is one), and the imports of sibling modules inside functions (as `"a -> b"`).
+    Imports under `if TYPE_CHECKING:` are not made at run time and count as neither."""
+    import ast
+
+    modules = _modules(package)
+    edges: dict[str, set[str]] = {m: set() for m in modules}
+    inner = []
+    for name, path in modules.items():
+        parts = list(path.relative_to(ROOT).with_suffix("").parts)
+        tree = ast.parse(path.read_text())
+        typing_only = {id(n) for t in tree.body if isinstance(t, ast.If) and "TYPE_CHECKING" in ast.dump(t.test)
+                       for n in ast.walk(t)}
+        functions = {id(n) for f in ast.walk(tree) if isinstance(f, ast.FunctionDef | ast.AsyncFunctionDef)
+                     for n in ast.walk(f)}
+        for node in ast.walk(tree):
+            if id(node) in typing_only:
+                continue
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = parts[: len(parts) - node.level] if node.level else []
+                module = ".".join(base + ([node.module] if node.module else []))
+                targets = [f"{module}.{a.name}" for a in node.names if f"{module}.{a.name}" in modules] or [module]
+            else:
+                continue
+            for target in targets:
+                if target not in modules or target == name:
+                    continue
+                if id(node) in functions:
+                    inner.append(f"{name} -> {target}")
+                else:
+                    edges[name].add(target)
+    return edges, inner
+
+
+def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The import cycles of `edges`: its strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out = []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in edges:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_file_or_function_is_too_long():
+    """No module of the library or of `fitting` over 500 lines of code, no function over 100."""
+    import ast
+
+    problems = []
+    for package in ("piezojax", "fitting"):
+        for path in _modules(package).values():
+            source = path.read_text()
+            tree = ast.parse(source)
+            lines = _code_lines(source, tree)
+            if len(lines) > MAX_FILE_LINES:
+                problems.append(f"{path.relative_to(ROOT)}: {len(lines)} lines of code")
+            for node in ast.walk(tree):
+                if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                    n = len([k for k in lines if node.lineno <= k <= node.end_lineno])
+                    if n > MAX_FUNCTION_LINES:
+                        problems.append(f"{path.relative_to(ROOT)}:{node.name}: {n} lines of code")
+    assert not problems, "\n".join(problems)
+
+
+def test_no_import_cycle_and_no_import_inside_a_function():
+    """The modules of `piezojax` and `fitting` import each other one way only, and at module level: a sibling module is
+    imported inside a function only by the command line (which installs its signal handlers before JAX is loaded)
+    and by `fitting/__init__.py`'s lazy loading."""
+    for package in ("piezojax", "fitting"):
+        edges, inner = _import_edges(package)
+        assert not _cycles(edges), _cycles(edges)
+        inner = [i for i in inner if not i.startswith(("fitting.cli", "fitting -> "))]
+        assert not inner, "\n".join(inner)
+    # the checks see what they look for: a cycle in a made-up graph, the command line's deferred imports, the
+    # module-level edges of the real layout
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    edges, inner = _import_edges("fitting")
+    assert any(i.startswith("fitting.cli.commands -> fitting._calibrate") for i in inner)
+    assert "fitting._data.formats" in edges["fitting._data.dataset"]
+    assert "fitting.files" in edges["fitting._calibrate"]  # `from . import files`
+    assert _code_lines('"""doc"""\n\n# comment\nx = 1\n', __import__("ast").parse('"""doc"""\n\n# comment\nx = 1\n')) \
+        == {4}

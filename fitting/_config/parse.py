@@ -50,6 +50,29 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     if not isinstance(text, str):
         raise PiezojaxValueError(f"{source}: `text` must be the TOML text (a str; read a file with "
                                  f"`fitting.load_config`), got {type(text).__name__}")
+    text = text.removeprefix("\ufeff")  # a byte-order mark (some editors on Windows save one), as in CSV files
+    raw = _read_tables(text, source)
+    model, mkind, mt = _model_kind(source, raw)
+    kinds, opts = _parse_blocks(source, raw, mkind, model)
+    h_kind = kinds["hysteresis"]
+    model_options = mkind.parse(mt, raw, source)
+    if mkind.table is None and kinds["creep"] == "none" and h_kind == "none" and opts["dynamics"].get("order", 0) == 0:
+        raise PiezojaxValueError(f"{source}: every block is 'none': the model has no parameters")
+    blocks = dict(source=source, hysteresis=h_kind, hysteresis_options=opts["hysteresis"], creep=kinds["creep"],
+                  creep_options=opts["creep"], dynamics=kinds["dynamics"], dynamics_options=opts["dynamics"],
+                  model=model, model_options=model_options)
+    outputs = ModelConfig(text="", **blocks, free=None, weights="range", smoothing=None, max_steps=1,
+                          targets=None).outputs
+    ft = ConfigTable(source, "fit", raw.get("fit", {}), _FIT_KEYS)
+    fit = _parse_fit(ft, h_kind, outputs)
+    cfg = ModelConfig(text=text, **blocks, **fit, data=_parse_data(source, raw))
+    if fit["free"] is not None:
+        _check_free(cfg, ft, fit["free"])
+    return cfg
+
+
+def _read_tables(text: str, source: str) -> dict:
+    """The TOML document's tables, each a table with a known name, and at least one model block among them."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -66,8 +89,12 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         raise PiezojaxValueError(
             f"{source}: no model blocks; give at least one of [hysteresis], [creep], [dynamics], [observer] or [model]"
         )
+    return raw
 
-    # the model kind: the observer or model that [observer] / [model] names, else the actuator
+
+def _model_kind(source: str, raw: dict):
+    """`(name, ModelKind, its ConfigTable or None)`: the observer or model that [observer] / [model] names, else the
+    actuator; a block table the model does not use is an error."""
     named = [t for t in MODEL_TABLES if t in raw]
     if len(named) > 1:
         raise PiezojaxValueError(f"{source}: [observer] and [model] both name a whole model; keep one")
@@ -83,8 +110,11 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
             raise PiezojaxValueError(
                 f"{source}: [{t}] is not used by the {mkind.name.replace('_', ' ')} model (kind {model!r}); remove "
                 f"it, or remove [{mkind.table}] for an actuator model")
+    return model, mkind, mt
 
-    # the blocks, each parsed by its kind
+
+def _parse_blocks(source: str, raw: dict, mkind, model: str) -> tuple[dict, dict]:
+    """Each block table's kind and options, parsed by its kind (`kind = "none"` for a block the model lacks)."""
     kinds, opts = {}, {}
     for table in ("hysteresis", "creep", "dynamics"):
         if table not in mkind.blocks:  # a block the model does not have
@@ -103,29 +133,27 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         if table == "hysteresis" and not kind.empty:
             o.update(_parse_polynomial(t))
         if table == "creep" and not kind.empty:
-            structure = t.string("structure", ("series", "parallel"))
-            allowed = [s for s in kind.structures if s in mkind.structures]
-            if structure is not None and structure not in allowed or not allowed:
-                if structure is not None and structure not in kind.structures:
-                    raise t.error(kind.structure_note or f"a {name!r} creep supports only structure = "
-                                  f"{' or '.join(map(repr, kind.structures))}", "structure")
-                raise t.error(f"the {mkind.name.replace('_', ' ')} model adds its creep in "
-                              f"{' or '.join(mkind.structures)} (paper 001's eq. 4 for the observer); use a kind that "
-                              f"supports it, without another `structure`", "structure" if structure else "kind")
-            if structure is not None:
-                o["structure"] = structure
+            o.update(_creep_structure(t, kind, mkind, name))
         kinds[table], opts[table] = name, o
-    h_kind = kinds["hysteresis"]
-    model_options = mkind.parse(mt, raw, source)
-    if mkind.table is None and kinds["creep"] == "none" and h_kind == "none" and opts["dynamics"].get("order", 0) == 0:
-        raise PiezojaxValueError(f"{source}: every block is 'none': the model has no parameters")
-    outputs_of = ModelConfig(text="", source=source, hysteresis=h_kind, hysteresis_options=opts["hysteresis"],
-                             creep=kinds["creep"], creep_options=opts["creep"], dynamics=kinds["dynamics"],
-                             dynamics_options=opts["dynamics"], model=model, model_options=model_options, free=None,
-                             weights="range", smoothing=None, max_steps=1, targets=None).outputs
+    return kinds, opts
 
-    # fit options
-    ft = ConfigTable(source, "fit", raw.get("fit", {}), _FIT_KEYS)
+
+def _creep_structure(t: ConfigTable, kind, mkind, name: str) -> dict:
+    """`{"structure": ...}` when the [creep] table gives one the kind and the model support, else `{}`."""
+    structure = t.string("structure", ("series", "parallel"))
+    allowed = [s for s in kind.structures if s in mkind.structures]
+    if structure is not None and structure not in allowed or not allowed:
+        if structure is not None and structure not in kind.structures:
+            raise t.error(kind.structure_note or f"a {name!r} creep supports only structure = "
+                          f"{' or '.join(map(repr, kind.structures))}", "structure")
+        raise t.error(f"the {mkind.name.replace('_', ' ')} model adds its creep in "
+                      f"{' or '.join(mkind.structures)} (paper 001's eq. 4 for the observer); use a kind that "
+                      f"supports it, without another `structure`", "structure" if structure else "kind")
+    return {} if structure is None else {"structure": structure}
+
+
+def _parse_fit(ft: ConfigTable, h_kind: str, outputs) -> dict:
+    """The [fit] table as `ModelConfig`'s keyword arguments: free, weights, smoothing, max_steps, method, targets."""
     if "kind" in ft.data:
         raise ft.error(f"unknown key 'kind'; allowed keys: {', '.join(_FIT_KEYS)}", "kind")
     free = ft.data.get("free")
@@ -134,6 +162,21 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
             raise ft.error(f"must be a non-empty list of parameter paths (e.g. \"hysteresis.weights\"), got {free!r}",
                            "free")
         free = tuple(free)
+    weights = _weights(ft)
+    smoothing = _smoothing(ft, h_kind)
+    max_steps = ft.integer("max_steps", 500, minimum=1, maximum=MAX_STEPS)
+    method = ft.string("method", ("levenberg_marquardt", "trust_region"), "levenberg_marquardt")
+    targets = _targets(ft, outputs)
+    if isinstance(weights, dict) and targets is not None:
+        lacking = [c for c in targets if c not in weights]
+        if lacking:
+            raise ft.error(f"no weight for the target channel {lacking[0]!r}", "weights")
+    return dict(free=free, weights=weights, smoothing=smoothing, max_steps=max_steps, method=method,
+                targets=targets)
+
+
+def _weights(ft: ConfigTable):
+    """`[fit] weights`: "range", "noise" or a table {channel = weight}."""
     weights = ft.data.get("weights", "range")
     if isinstance(weights, str):
         if weights not in _WEIGHT_MODES:
@@ -149,6 +192,11 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         weights = {c: float(w) for c, w in weights.items()}
     else:
         raise ft.error(f"must be \"range\", \"noise\" or a table {{channel = weight}}, got {weights!r}", "weights")
+    return weights
+
+
+def _smoothing(ft: ConfigTable, h_kind: str) -> tuple[float, ...] | None:
+    """`[fit] smoothing`: the continuation levels, which need a hysteresis block."""
     smoothing = ft.data.get("smoothing")
     if smoothing is not None:
         if not (isinstance(smoothing, list) and smoothing and all(
@@ -161,23 +209,24 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         if len(smoothing) > MAX_LEVELS:
             raise ft.error(f"at most {MAX_LEVELS} continuation levels, got {len(smoothing)}", "smoothing")
         smoothing = tuple(float(s) for s in smoothing)
-    max_steps = ft.integer("max_steps", 500, minimum=1, maximum=MAX_STEPS)
-    method = ft.string("method", ("levenberg_marquardt", "trust_region"), "levenberg_marquardt")
+    return smoothing
+
+
+def _targets(ft: ConfigTable, outputs) -> tuple[str, ...] | None:
+    """`[fit] targets`: channels the model predicts."""
     targets = ft.data.get("targets")
     if targets is not None:
-        outputs = outputs_of
         if not (isinstance(targets, list) and targets and all(isinstance(c, str) for c in targets)):
             raise ft.error(f"must be a non-empty list of channel names, got {targets!r}", "targets")
         bad = [c for c in targets if c not in outputs]
         if bad:
             raise ft.error(f"the model does not predict {bad[0]!r}; it predicts: {', '.join(outputs)}", "targets")
         targets = tuple(targets)
-    if isinstance(weights, dict) and targets is not None:
-        lacking = [c for c in targets if c not in weights]
-        if lacking:
-            raise ft.error(f"no weight for the target channel {lacking[0]!r}", "weights")
+    return targets
 
-    # data options
+
+def _parse_data(source: str, raw: dict) -> dict[str, Any]:
+    """The [data] table: how the data files are read (units, columns, group, sample_rate, ignore_extra)."""
     dtab = ConfigTable(source, "data", raw.get("data", {}), _DATA_KEYS)
     if "kind" in dtab.data:
         raise dtab.error(f"unknown key 'kind'; allowed keys: {', '.join(_DATA_KEYS)}", "kind")
@@ -201,33 +250,29 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
         if not isinstance(dtab.data["ignore_extra"], bool):
             raise dtab.error(f"must be true or false, got {dtab.data['ignore_extra']!r}", "ignore_extra")
         data["ignore_extra"] = dtab.data["ignore_extra"]
+    return data
 
-    cfg = ModelConfig(
-        text=text, source=source, hysteresis=h_kind, hysteresis_options=opts["hysteresis"], creep=kinds["creep"],
-        creep_options=opts["creep"], dynamics=kinds["dynamics"], dynamics_options=opts["dynamics"], model=model,
-        model_options=model_options, free=free, weights=weights, smoothing=smoothing, max_steps=max_steps,
-        targets=targets, method=method, data=data,
-    )
-    if free is not None:
-        values = parameter_paths(cfg.build(None))
-        paths = list(values)
-        # without a [charge] table the actuator's capacitance and coupling act on no predicted channel
-        no_charge = cfg.model_kind is ACTUATOR and cfg.charge is None
-        charge_only = ("capacitance", "coupling") if no_charge else ()
-        listed = [p for p in paths if p not in charge_only]
-        for sel in free:
-            matched = [p for p in paths if matches(p, sel)]
-            if not matched:
-                raise ft.error(f"unknown parameter path {sel!r}; the model's parameters: {', '.join(listed)}", "free")
-            if sel in charge_only:
-                raise ft.error(f"{sel!r} acts only on the charge and current, which this model does not predict: add "
-                               "a [charge] table to fit it", "free")
-            if all(jnp.size(values[p]) == 0 for p in matched):
-                # e.g. `dynamics.poles` of a model with pole pairs only: nothing to fit
-                sized = ", ".join(p for p in listed if jnp.size(values[p]) > 0)
-                raise ft.error(f"{sel!r} has no entries in this model (its sizes come from the block tables); the "
-                               f"model's parameters with entries: {sized}", "free")
-    return cfg
+
+def _check_free(cfg: ModelConfig, ft: ConfigTable, free: tuple[str, ...]) -> None:
+    """Every `[fit] free` selector matches a parameter of the built model that has entries and acts on an output."""
+    values = parameter_paths(cfg.build(None))
+    paths = list(values)
+    # without a [charge] table the actuator's capacitance and coupling act on no predicted channel
+    no_charge = cfg.model_kind is ACTUATOR and cfg.charge is None
+    charge_only = ("capacitance", "coupling") if no_charge else ()
+    listed = [p for p in paths if p not in charge_only]
+    for sel in free:
+        matched = [p for p in paths if matches(p, sel)]
+        if not matched:
+            raise ft.error(f"unknown parameter path {sel!r}; the model's parameters: {', '.join(listed)}", "free")
+        if sel in charge_only:
+            raise ft.error(f"{sel!r} acts only on the charge and current, which this model does not predict: add "
+                           "a [charge] table to fit it", "free")
+        if all(jnp.size(values[p]) == 0 for p in matched):
+            # e.g. `dynamics.poles` of a model with pole pairs only: nothing to fit
+            sized = ", ".join(p for p in listed if jnp.size(values[p]) > 0)
+            raise ft.error(f"{sel!r} has no entries in this model (its sizes come from the block tables); the "
+                           f"model's parameters with entries: {sized}", "free")
 
 
 def load_config(path: str | os.PathLike) -> ModelConfig:

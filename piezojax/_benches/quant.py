@@ -10,7 +10,7 @@ from .._checks import PiezojaxValueError, check_value
 from .._creep.lags import lag_sum
 from .._dtypes import matmul
 from .._hysteresis.preisach import Preisach
-from .._linear.state_space import StateSpace
+from .._linear.base import StateSpace
 from .common import AbstractBench, Record, bench_param, bench_signal, lag, measure, replace_fields
 
 

@@ -82,3 +82,15 @@ class AbstractCreep(eqx.Module):
     def __call__(self, u: SignalLike, dt: ArrayLike, hold: str = "zoh", u0: ArrayLike | None = None) -> Signal:
         """Same as `simulate`."""
         return self.simulate(u, dt, hold, u0)
+
+
+class AbstractFusedCreep(AbstractCreep):
+    """A creep block with a finite state that can run inside `pj.Actuator`'s one-loop forward pass (every block's
+    per-sample update in one `lax.scan`; see `pj.Actuator.simulate`). Subclass it, instead of `AbstractCreep`, and
+    define `zoh_cell` to have your own block take that pass."""
+
+    @abc.abstractmethod
+    def zoh_cell(self, dt: Array):
+        """The block sampled with a zero-order hold at step `dt`: a cell with `order` (the state's size) and
+        `step(x, u_k) -> (x_next, y_k)` from the zero state (`pj.DiscreteStateSpace` is one). Called on a checked
+        block, inside the traced forward pass."""

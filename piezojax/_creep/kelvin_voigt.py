@@ -7,7 +7,8 @@ from jaxtyping import Array, ArrayLike
 
 from .._checks import PiezojaxValueError, as_float_array, check_positive, check_same_shape, check_scalar, check_vector
 from .._dtypes import common_float_dtype
-from .base import AbstractCreep
+from .base import AbstractFusedCreep
+from .cells import LagCell
 from .lags import lag_sum
 
 
@@ -21,7 +22,7 @@ def paired_vectors(a: ArrayLike, name_a: str, b: ArrayLike, name_b: str) -> tupl
     return x, y
 
 
-class KelvinVoigtCreep(AbstractCreep):
+class KelvinVoigtCreep(AbstractFusedCreep):
     r"""Kelvin–Voigt creep chain: $y = \left(\frac{1}{k_0} + \sum_i \frac{1}{k_i}\,\frac{1}{1 + \tau_i s}\right) u$.
 
     A spring $k_0$ in series with Kelvin–Voigt elements (spring $k_i$ parallel to a damper $k_i\tau_i$), driven by
@@ -79,6 +80,9 @@ class KelvinVoigtCreep(AbstractCreep):
         t = jnp.asarray(t)
         lags = -jnp.expm1(-t[..., None] / self.time_constants) / self.stiffnesses
         return self._c0(lags.dtype) + jnp.sum(lags, axis=-1)
+
+    def zoh_cell(self, dt: Array) -> LagCell:
+        return LagCell(1 / self.stiffnesses, self.time_constants, self.instantaneous_gain(), dt)
 
     def instantaneous_gain(self) -> Array:
         return self._c0(self.stiffnesses.dtype)

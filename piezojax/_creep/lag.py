@@ -5,7 +5,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .._checks import check_positive, check_value
-from .base import AbstractCreep
+from .base import AbstractFusedCreep
+from .cells import LagCell
 from .kelvin_voigt import paired_vectors
 from .lags import lag_sum
 
@@ -18,7 +19,7 @@ def _check_fractions(alpha: Array) -> Array:
     )
 
 
-class LagCreep(AbstractCreep):
+class LagCreep(AbstractFusedCreep):
     r"""Creep with instantaneous feed-through: a fraction $\alpha_i$ of the response arrives with lag $\tau_i$.
 
     $$\mathcal{C}(s) = \Big(1 - \sum_i \alpha_i\Big) + \sum_i \frac{\alpha_i}{1 + \tau_i s},\qquad
@@ -55,6 +56,9 @@ class LagCreep(AbstractCreep):
     def check(self) -> "LagCreep":
         checked = (_check_fractions(self.fractions), check_positive(self.time_constants, "time_constants"))
         return eqx.tree_at(lambda m: (m.fractions, m.time_constants), self, checked)
+
+    def zoh_cell(self, dt: Array) -> LagCell:
+        return LagCell(self.fractions, self.time_constants, self.feedthrough(), dt)
 
     def feedthrough(self) -> Array:
         r"""$1 - \sum_i \alpha_i$, the part of the response that follows the input at once."""

@@ -9,10 +9,10 @@ from .._dtypes import matmul
 from .._linear.base import AbstractLinearSystem
 from .._linear.discretise import discretise_state_space
 from .._linear.stable import StableTransferFunction
-from .base import AbstractCreep
+from .base import AbstractFusedCreep
 
 
-class LinearCreep(AbstractCreep):
+class LinearCreep(AbstractFusedCreep):
     r"""Creep as a linear time-invariant transfer function (paper 001, eq. 9):
 
     $$F_C(s) = \frac{a_0 s^4 + a_1 s^3 + a_2 s^2 + a_3 s + a_4}{s^4 + b_1 s^3 + b_2 s^2 + b_3 s + b_4}.$$
@@ -79,6 +79,9 @@ class LinearCreep(AbstractCreep):
 
         flat = jax.vmap(one)(jnp.ravel(t))
         return flat.reshape(t.shape)
+
+    def zoh_cell(self, dt: Array):
+        return self.system.discretise(dt, "zoh")
 
     def instantaneous_gain(self) -> Array:
         return self.system.state_space()[3]

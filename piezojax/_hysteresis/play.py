@@ -34,7 +34,7 @@ from .._custom_types import ScalarLike
 from .._dtypes import param_dtype
 from .._parametrisation import setting
 from .._scans import affine_scan, clamp_scan
-from .base import AbstractHysteresis, AbstractOutputMap, root_finding_inverse
+from .base import AbstractFusedHysteresis, AbstractHysteresis, root_finding_inverse
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Pure step functions (also used by other operators, e.g. the smooth Preisach form).
@@ -513,7 +513,7 @@ def error_if_bad_smoothing(smoothing: Array) -> Array:
 # ---------------------------------------------------------------------------------------------------------------------
 
 
-class _AbstractStopCell(AbstractHysteresis):
+class _AbstractStopCell(AbstractFusedHysteresis):
     """Shared cell of the stop-value operators (play, stop, PI, Gaussian Preisach): state `(previous input, stop
     values z)`, one update law."""
 
@@ -535,6 +535,9 @@ class _AbstractStopCell(AbstractHysteresis):
     def _run_autodiff(self, state, signal):
         """`_run` differentiated by plain autodiff through the scan (the reference for the hand-derived JVP)."""
         return run_exact_or_smooth(self, state, signal)
+
+    def exact_step(self):
+        return lambda state, v: self._step(state, v, True)
 
     def _step(self, state, v, exact):
         v_prev, z = state
@@ -641,22 +644,6 @@ class StopOperator(_AbstractPlainStopCell):
 
 
 def exact_cell(op: AbstractHysteresis):
-    """The exact per-sample update of `op`, `step(state, v) -> (state, y)` from `op.init()`'s state, or None.
-
-    Defined for the stop cells (`PlayOperator`, `StopOperator`, `PrandtlIshlinskii`, `GaussianPreisach`) and the
-    output maps of them (`ScaledHysteresis`, `OutputPolynomial`); the caller makes sure `op.smoothing` is 0. No
-    checks: the body of `pj.Actuator`'s one-loop forward pass, which attaches `op.check()` first.
-    """
-    if isinstance(op, AbstractOutputMap):
-        inner = exact_cell(op.hysteresis)
-        if inner is None:
-            return None
-
-        def step(state, v):
-            state, h = inner(state, v)
-            return state, op.shape(h)
-
-        return step
-    if isinstance(op, _AbstractStopCell):
-        return lambda state, v: op._step(state, v, True)
-    return None
+    """The exact per-sample update of `op` (`AbstractFusedHysteresis.exact_step`), or None where it has none. The
+    caller makes sure `op.smoothing` is 0."""
+    return op.exact_step() if isinstance(op, AbstractFusedHysteresis) else None

@@ -20,7 +20,7 @@ from .._checks import (
 )
 from .._custom_types import Signal, SignalLike
 from .._dtypes import cast_module, matmul, module_float_dtype
-from .discretise import DiscreteStateSpace, check_hold, discretise_state_space
+from .discretise import DiscreteStateSpace, check_hold, check_realisation, discretise_state_space
 
 
 class AbstractLinearSystem(eqx.Module):
@@ -196,8 +196,6 @@ class AbstractLinearSystem(eqx.Module):
         **Returns:** a `StateSpace`, to `simulate` on the desired output (with `hold="foh"` for a sampled smooth
         reference).
         """
-        from .state_space import StateSpace
-
         A, B, C, D = self.state_space()
         n = A.shape[0]
         r = self.relative_degree() if relative_degree is None else relative_degree
@@ -234,3 +232,38 @@ def default_inverse_bandwidth(system: AbstractLinearSystem) -> float:
         raise PiezojaxValueError("pass `bandwidth` when the system's values are traced (under jit, vmap or grad): "
                                  "the default needs concrete values")
     return float(np.max(np.abs(np.linalg.eigvals(np.asarray(a, np.float64)))))
+
+
+class StateSpace(AbstractLinearSystem):
+    r"""A SISO linear system given by a realisation: $\dot x = A x + B u$, $y = C x + D u$.
+
+    The realisation is used as given (no balancing); for lightly damped or widely spread poles prefer a well-scaled
+    (modal) realisation, e.g. `StableTransferFunction`.
+
+    **Arguments:**
+
+    - `A`: state matrix, shape `(n, n)`.
+    - `B`: input vector, shape `(n,)`.
+    - `C`: output vector, shape `(n,)`.
+    - `D`: feedthrough, scalar (default 0).
+
+    ```python
+    G = pj.StateSpace([[-1.0]], [1.0], [2.0], 0.0)   # 2 / (s + 1)
+    G.dc_gain()  # 2.0
+    ```
+    """
+
+    A: Float[Array, "n n"]
+    B: Float[Array, " n"]
+    C: Float[Array, " n"]
+    D: Float[Array, ""]
+
+    def __init__(self, A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike = 0.0):
+        self.A, self.B, self.C, self.D = check_realisation(A, B, C, D)
+
+    @property
+    def order(self) -> int:
+        return self.A.shape[0]
+
+    def state_space(self):
+        return self.A, self.B, self.C, self.D

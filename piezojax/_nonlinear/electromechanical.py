@@ -8,6 +8,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._checks import PiezojaxValueError, as_float_array, check_positive, check_scalar, check_value, check_vector
 from .._dtypes import common_float_dtype
+from .._linear.transfer_function import TransferFunction
 from ._input import check_samples, check_step
 
 _SCALARS = ("m", "b", "k", "capacitance")
@@ -288,8 +289,6 @@ class ElectromechanicalActuator(eqx.Module):
         v = act.inverse()(x_desired, dt)        # act.simulate(v, dt)["x"] ~ x_desired
         ```
         """
-        from .._linear.transfer_function import TransferFunction
-
         if not isinstance(dynamics, bool) or not isinstance(preview, bool):
             raise PiezojaxValueError(f"`dynamics` and `preview` must be True or False, got {dynamics!r}, {preview!r}")
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from piezojax import PiezojaxValueError
-from piezojax._hysteresis.initialise import MAX_ROWS, row_subset
+from piezojax.internal import MAX_ROWS, row_subset
 
 from ..._initialise import cold_start_actuator
 from ..table import SURROGATE_PLAYS, ConfigTable, StartWarning, chord

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import piezojax as pj
-from piezojax._hysteresis.initialise import columns_at_rows
+from piezojax.internal import columns_at_rows
 
 from ..table import (
     DUPLICATE_THRESHOLD,

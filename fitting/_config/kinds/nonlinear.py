@@ -20,7 +20,7 @@ import scipy
 
 import piezojax as pj
 from piezojax import PiezojaxValueError
-from piezojax._hysteresis.initialise import MAX_ROWS, nnls_gram, row_subset
+from piezojax.internal import MAX_ROWS, nnls_gram, row_subset
 
 from ..._initialise import dynamics_candidates, filter_pairs
 from ..._predict import ExperimentArrays, Predictor, as_arrays, run_predictor

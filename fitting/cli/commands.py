@@ -1,0 +1,150 @@
+"""The commands: `fit`, `predict`, `simulate`; each parses nothing and writes its outputs atomically."""
+
+from pathlib import Path
+
+from .common import _check_output, _data_settings, _error, _given_units, _info, _load_data, _out, _safe_name, _windowed
+from .signals import _check_interrupted, _consume_interrupt, _hold_signals, _interrupt_status, _pending_interrupt
+from .status import EXIT_NOT_CONVERGED, EXIT_OK
+
+# ------------------------------------------------------------------------------------------------------ commands
+
+
+def _cmd_fit(args) -> int:
+    import fitting
+
+    from .._calibrate import calibrate
+    from .._config import MAX_STEPS, load_config
+
+    quiet = args.quiet
+    if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
+        raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
+    out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
+    config = load_config(args.config)
+    settings = _data_settings(args, config.data)
+    with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
+        dataset, unit_warnings = _load_data(args.data, settings, args.group)
+        if args.window is not None:
+            dataset = _windowed(dataset, args.window)
+        cal = calibrate(config, dataset, max_steps=args.max_steps, progress=not quiet,
+                        log=lambda m, warning=False: _info(m, quiet and not warning), interrupted=_pending_interrupt)
+        result = cal.result
+        if result.code == "interrupted":
+            _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
+        _info(f"writing {out}", quiet)
+        cal.write_files(tmp, figures=not args.no_figures, config_source=args.config, data=args.data,
+                        data_settings=settings, window=args.window, read_warnings=unit_warnings)
+        _check_interrupted()
+        _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
+    _out(cal.report())
+    if result.code == "interrupted":
+        _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
+        return _interrupt_status()
+    if not result.success:
+        _info(f"the fit did not converge ({result.reason}); results written to {out}")
+        return EXIT_NOT_CONVERGED
+    return EXIT_OK
+
+
+def load_fitted(model_dir) -> tuple:
+    """`(config, model)` from a folder written by `piezojax fit`. Deprecated: `fitting.load_fit(model_dir)` returns
+    them, validated, with the fit's summary and data settings."""
+    import warnings
+
+    import fitting
+
+    warnings.warn("fitting.cli.load_fitted is deprecated; use fitting.load_fit (config, model = "
+                  "fitting.load_fit(folder))", DeprecationWarning, stacklevel=2)
+    fit = fitting.load_fit(model_dir)
+    return fit.config, fit.model
+
+
+def _cmd_predict(args) -> int:
+    import numpy as np
+
+    import fitting
+
+    from .._results import lack_of_fit
+
+    out = _check_output(args.out, args.overwrite, "predict", inputs=[*args.data, *(args.history or [])],
+                        fit_folder=args.model_dir)
+    fit = fitting.load_fit(args.model_dir)
+    config, model = fit.config, fit.model
+    settings = _data_settings(args, fit.data_settings)
+    given = _given_units(args)[1]
+    kept = {k: v for k, v in settings.get("units", {}).items() if k not in given}
+    if kept:
+        shown = ",".join(f"{k}={v}" for k, v in kept.items())
+        _info(f"reading the files in the fit's units ({shown}); --units '' reads them in SI")
+    with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="predict") as tmp:
+        dataset, unit_warnings = _load_data(args.data, settings, args.group)
+        results, metrics = [], {}
+        history = _load_data(args.history, settings, args.group)[0] if args.history else ()
+        for exp in dataset:
+            preds = fitting.predict(model, exp, predictor=config.predictor(), history=history)
+            preds = {c: preds[c] for c in config.outputs}
+            results.append((exp, preds))
+            measured = [c for c in preds if exp.has(c)]
+            scored = exp.t >= args.score_from - 1e-6 * exp.dt if args.score_from is not None else slice(None)
+            if args.score_from is not None and np.count_nonzero(scored) < 2:
+                raise _error(f"{exp._label()}: --score-from {args.score_from:g} s leaves fewer than 2 samples of the "
+                             f"record [{exp.t[0]:.6g}, {exp.t[-1]:.6g}] s")
+            if measured:
+                metrics[exp.name] = {c: fitting.error_metrics(preds[c][scored], exp[c][scored]) for c in measured}
+        names = {}
+        for exp, _ in results:
+            base = _safe_name(exp.name.replace("/", "__"))
+            name, i = base, 1
+            while name in names.values():
+                i += 1
+                name = f"{base}_{i}"
+            names[exp.name] = name
+        for exp, preds in results:
+            pred_exp = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
+            fitting.save_experiment(pred_exp, tmp / f"{names[exp.name]}.csv",
+                                    units={"v_in": config.model_kind.input_unit})
+        fitting.files.save_json(tmp / "metrics.json", {
+            "model": str(Path(args.model_dir).absolute()),
+            "files": {exp.name: {"input": exp.source, "output": f"{names[exp.name]}.csv"} for exp, _ in results},
+            "metrics": metrics,
+            "data_settings": settings,
+            "history": [str(Path(p).absolute()) for p in args.history or []],
+            "score_from": args.score_from,
+            "warnings": unit_warnings,
+        })
+        _check_interrupted()
+        _hold_signals()
+    for exp, _ in results:
+        _out(f"{exp.name}: {names[exp.name]}.csv")
+        for c, m in metrics.get(exp.name, {}).items():
+            ratio = m.get("rmse_over_noise")
+            _out(f"  {c:<13} RMSE {m['rmse']:.6e} {fitting.UNITS.get(c, '')}  NRMSE {m['nrmse_percent']:.4f} %  "
+                 f"max {m['max_error_percent']:.4f} % of range"
+                 + ("" if ratio is None else f"  {ratio:.2f}x the noise"))
+            if lack_of_fit({exp.name: {c: m}}) is not None:
+                _out(f"  above the noise: the model misses part of this record's {c}")
+    _info(f"wrote {len(results)} prediction file(s) to {out}")
+    return EXIT_OK
+
+
+def _cmd_simulate(args) -> int:
+    import fitting
+    import piezojax as pj
+
+    from .._config import load_config
+
+    out = _check_output(args.out, args.overwrite, "simulate", inputs=[args.input, args.config])
+    config = load_config(args.config)
+    settings = _data_settings(args, config.data)
+    model = pj.unwrap(config.build(None, require_values=True))
+    dataset, _ = _load_data([args.input], settings, args.group)
+    exp = dataset[0]
+    preds = fitting.predict(model, exp, predictor=config.predictor())
+    preds = {c: preds[c] for c in config.outputs}
+    result = fitting.Experiment.from_arrays(t=exp.t, v_in=exp.v_in, name=exp.name, **preds)
+    _check_interrupted()
+    _hold_signals()
+    fitting.save_experiment(result, out, marker="simulate", units={"v_in": config.model_kind.input_unit})
+    _info(f"wrote {', '.join(preds)} for {exp.n} samples to {out}")
+    return EXIT_OK
+
+
