@@ -10,6 +10,7 @@ same filesystem), is flushed and fsync'ed, and only then renamed onto the destin
 
 import contextlib
 import ctypes
+import errno
 import json
 import math
 import os
@@ -24,14 +25,17 @@ from typing import Any
 
 import numpy as np
 
-from piezojax._checks import PiezojaxValueError
+from piezojax import PiezojaxValueError
 
 _TMP_TAG = ".tmp-"
 MARKER = ".piezojax"
 """Name of the marker file `atomic_directory(..., kind=...)` writes into a folder, so that a later `overwrite` can
 recognise a previous output of the same kind (and refuses to replace anything else)."""
 
-_TEMP_PID = re.compile(re.escape(_TMP_TAG) + r"(\d+)-")
+# `.NAME.tmp-PID-sSTART-...`: the writer's process id and start time (the start time absent from temporaries of
+# earlier versions, and where the system does not give it)
+_TEMP_PID = re.compile(re.escape(_TMP_TAG) + r"(\d+)-(?:s(\d+)-)?")
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # the disk (or the user's quota) is full, or the file too large
 
 
 def _describe_os_error(e: OSError) -> str:
@@ -39,9 +43,31 @@ def _describe_os_error(e: OSError) -> str:
 
 
 def _temp_prefix(name: str) -> str:
-    # The owner's process id is part of every temporary name: the next run can tell a leftover of a killed run
-    # (owner gone: removed) from the output of a run still in progress (owner alive: refused).
-    return f".{name}{_TMP_TAG}{os.getpid()}-"
+    # The owner's process id and start time are part of every temporary name: the next run can tell a leftover of a
+    # killed run (owner gone, or its process id now another process's: removed) from the output of a run still in
+    # progress (owner alive: refused).
+    start = _start_time(os.getpid())
+    return f".{name}{_TMP_TAG}{os.getpid()}-" + ("" if start is None else f"s{start}-")
+
+
+def _start_time(pid: int) -> str | None:
+    """When process `pid` started (clock ticks since boot, Linux's /proc), or None where that is unknown."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return fields[19].decode()  # field 22 of proc(5); the first two (pid, comm) are before the ")"
+    except (OSError, IndexError, UnicodeDecodeError):
+        return None
+
+
+def _writer_alive(pid: int, start: str | None) -> bool:
+    """Whether the run that named a temporary with `pid` (and `start`, its start time, when recorded) still runs: a
+    live process with that id that started at another time is another process (the id was reused)."""
+    if pid == os.getpid():
+        return start is None or start == _start_time(pid)
+    if not _process_alive(pid):
+        return False
+    return start is None or _start_time(pid) in (None, start)
 
 
 def _process_alive(pid: int) -> bool:
@@ -56,8 +82,9 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
-def _temporaries(p: Path) -> list[tuple[Path, int]]:
-    """The temporary siblings of `p` written by `atomic_directory`/`atomic_file`, with their owners' process ids."""
+def _temporaries(p: Path) -> list[tuple[Path, int, str | None]]:
+    """The temporary siblings of `p` written by `atomic_directory`/`atomic_file`, with their owners' process ids and
+    start times (None: not recorded)."""
     try:
         entries = list(os.scandir(p.parent))
     except OSError:
@@ -69,19 +96,21 @@ def _temporaries(p: Path) -> list[tuple[Path, int]]:
             continue
         m = _TEMP_PID.search(entry.name)
         if m:
-            out.append((Path(entry.path), int(m.group(1))))
+            out.append((Path(entry.path), int(m.group(1)), m.group(2)))
     return out
 
 
 def _claim(p: Path) -> None:
     """Remove the temporaries of killed runs next to `p`; refuse if another live process is writing `p` now."""
-    for tmp, pid in _temporaries(p):
-        if pid == os.getpid():
+    for tmp, pid, start in _temporaries(p):
+        if pid == os.getpid() and (start is None or start == _start_time(pid)):
             continue
-        if _process_alive(pid):
+        if _writer_alive(pid, start):
             raise PiezojaxValueError(
                 f"another process (pid {pid}) is writing {str(p)!r} right now (its temporary {tmp.name!r} exists); "
-                "wait for it to finish or choose another output"
+                "wait for it to finish or choose another output. If no piezojax run is writing there (a leftover "
+                "from before a reboot or from another container, whose process id a live process now has), remove "
+                f"{str(tmp)!r}"
             )
         if tmp.is_dir() and not tmp.is_symlink():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -191,7 +220,7 @@ def _check_name_length(p: Path) -> None:
     except (OSError, ValueError, AttributeError):
         limit = 255
     # the temporary sibling adds a dot, the tag, the process id, 8 random characters and (files) the suffix again
-    room = limit - len(f".{_TMP_TAG}{os.getpid()}-") - 12 - len(os.fsencode(p.suffix))
+    room = limit - len(os.fsencode(_temp_prefix(""))) - 12 - len(os.fsencode(p.suffix))
     n = len(os.fsencode(p.name))
     if n > room:
         raise PiezojaxValueError(
@@ -318,9 +347,10 @@ def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
             os.fsync(f.fileno())
         os.chmod(tmp, _default_file_mode(p))
         os.replace(tmp, p)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        _raise_full(e, p)
         raise
     _fsync_directory(p.parent)
 
@@ -494,10 +524,18 @@ def atomic_directory(path: str | os.PathLike, overwrite: bool = False, kind: str
                               f"replaced; that previous folder was kept, as {str(kept)!r}", OutputWarning,
                               stacklevel=3)
             return
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
+        _raise_full(e, p)
         raise
     _fsync_directory(p.parent)
+
+
+def _raise_full(e: BaseException, p: Path) -> None:
+    """A full disk (or quota) while writing `p`, as an error that names `p` (the system's names no file)."""
+    if isinstance(e, OSError) and e.errno in _FULL:
+        raise OSError(e.errno, f"{_describe_os_error(e)}: cannot write {str(p)!r} (nothing was written there; free "
+                               "some space, or write elsewhere)") from e
 
 
 def _is_empty_directory(p: Path) -> bool:

@@ -114,4 +114,4 @@ from ._parametrisation import (
     unwrap as unwrap,
 )
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

@@ -7,6 +7,8 @@ import sys
 import warnings
 from collections.abc import Iterator
 
+from ._checks import PiezojaxValueError
+
 # XLA:CPU compiles a `lax.scan`/while loop into one fused native loop only when its body touches less than
 # `xla_cpu_small_while_loop_byte_threshold` bytes per iteration (default 1024). Above that every operation of the body
 # is dispatched separately, at hundreds of ns per operation per sample. Batched (vmap) simulation and forward-mode
@@ -153,8 +155,6 @@ def set_parallel_scans(mode: str) -> str:
     """
     global _parallel_scans
     if mode not in PARALLEL_SCAN_MODES:
-        from ._checks import PiezojaxValueError
-
         raise PiezojaxValueError(f"`mode` must be one of {PARALLEL_SCAN_MODES}, got {mode!r}")
     previous, _parallel_scans = _parallel_scans, mode
     return previous
@@ -243,4 +243,50 @@ def enable_compilation_cache(path: str | os.PathLike | None = None, min_compile_
         compilation_cache.reset_cache()
     except (ImportError, AttributeError):  # pragma: no cover - moved in a later JAX: the folder applies from now on
         pass
+    _replace_unreadable_entries()
     return folder
+
+
+class _ReplacingCache:
+    """JAX's file cache, except that a program compiled under a key already on disk replaces that entry (JAX keeps
+    the old one): an entry is compiled anew only when it could not be read (damaged, or written by another build),
+    so without this a damaged entry would be compiled again in every process and never repaired. The new entry is
+    written beside the old one and renamed over it, so a concurrent reader sees one or the other."""
+
+    def __init__(self, base):
+        self._base = base
+
+    def get(self, key: str):
+        return self._base.get(key)
+
+    def put(self, key: str, value: bytes) -> None:
+        entry = self._base.path / f"{key}{self._suffix}"
+        if not entry.exists():
+            self._base.put(key, value)
+            return
+        temporary = entry.with_name(f".{entry.name}.tmp-{os.getpid()}")
+        try:
+            temporary.write_bytes(value)
+            os.replace(temporary, entry)
+        except OSError as e:
+            warnings.warn(f"the compilation cache entry {str(entry)!r} could not be read and cannot be replaced "
+                          f"({e}); delete it", stacklevel=2)
+            with contextlib.suppress(OSError):
+                temporary.unlink()
+
+    def __getattr__(self, name):  # everything else (`path`, eviction, ...) is the file cache's
+        return getattr(self._base, name)
+
+
+def _replace_unreadable_entries() -> None:
+    """Put `_ReplacingCache` around the file cache JAX has just been told to use (left as it is where JAX's cache is
+    built differently, e.g. a remote one: there a damaged entry stays until the folder is deleted)."""
+    try:
+        from jax._src import compilation_cache, lru_cache
+
+        compilation_cache._initialize_cache()
+        if isinstance(compilation_cache._cache, lru_cache.LRUCache):
+            _ReplacingCache._suffix = lru_cache._CACHE_SUFFIX
+            compilation_cache._cache = _ReplacingCache(compilation_cache._cache)
+    except (ImportError, AttributeError):  # pragma: no cover - JAX's cache moved: entries are kept as JAX keeps them
+        pass
