@@ -1,7 +1,5 @@
 """The inverse of a whole actuator (hysteresis, creep and dynamics): feedforward voltage for a desired displacement."""
 
-from typing import TYPE_CHECKING
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -13,9 +11,6 @@ from ._custom_types import Signal, SignalLike
 from ._dtypes import cast_module, module_float_dtype
 from ._hysteresis.base import AbstractHysteresis, HysteresisInverse
 from ._linear.base import AbstractLinearSystem, default_inverse_bandwidth
-
-if TYPE_CHECKING:  # annotations only: `Actuator.inverse` builds the inverse, so this module does not import it
-    from ._actuator import Actuator
 
 
 class ActuatorInverse(eqx.Module):
@@ -56,7 +51,7 @@ class ActuatorInverse(eqx.Module):
     its own `init()`), `dynamics_inverse` (or `None`), `delay` [s], `lower`, `upper`, `iterations`, `preview`.
     """
 
-    actuator: "Actuator"
+    actuator: eqx.Module  # a `pj.Actuator` (not imported: `Actuator.inverse` builds this, from `_actuator.py`)
     hysteresis_inverse: AbstractHysteresis | None
     hysteresis_state: PyTree[Array] | None
     dynamics_inverse: AbstractLinearSystem | None
@@ -177,7 +172,7 @@ def _fixed_point(update, x0: Array, iterations: int, structure: str) -> Array:
 
 
 def actuator_inverse(
-    actuator: "Actuator",
+    actuator: eqx.Module,
     lower: ArrayLike | None,
     upper: ArrayLike | None,
     bandwidth: ArrayLike | None,

@@ -172,7 +172,7 @@ def test_frequency_response_and_dc_gain_match_scipy():
 
 
 def test_realisation_and_state_derivatives_with_respect_to_den_match_finite_differences():
-    """The companion realisation is scaled by $w = \max_j |a_j|^{1/j}$: its matrices, and a state scanned with them,
+    r"""The companion realisation is scaled by $w = \max_j |a_j|^{1/j}$: its matrices, and a state scanned with them,
     depend on `den` through $w$ too (the output does not). Their derivatives match central differences, and a zero
     coefficient gives a finite derivative (not 0 * inf)."""
     num = jnp.array([2e4, 1e7])
