@@ -2,11 +2,11 @@ r"""Calibrating a fleet: many actuators of one structure, each with its own para
 
 Each actuator is its own least-squares problem (`Problem`: its records, its start, its free parameters in its own
 scaling). `fit_fleet` stacks the problems on a leading *fleet* axis and runs the solver's loop for all of them at
-once: one iteration — trial step, linearisation at the trial point, acceptance, termination tests — is one pure JAX
-function of one actuator, mapped over the fleet with `vmap` and compiled once; its arrays are sharded over the
-devices along the fleet axis (`NamedSharding`) and XLA partitions the step. A finished actuator is frozen while the
-others go on. The steps are dispatched from Python, `steps_per_call` at a time before the verdicts are read, so
-progress is reported and Ctrl-C keeps the last accepted parameters.
+once: one iteration — trial step, linearisation at the trial point, acceptance, termination tests — is the
+compiled step that `fitting.solve` takes too (`fitting._solver.step`), here with one problem per row of the fleet;
+its arrays are sharded over the devices along the fleet axis (`NamedSharding`) and XLA partitions the step. A
+finished actuator is frozen while the others go on. The steps are dispatched from Python, `steps_per_call` at a
+time before the verdicts are read, so progress is reported and Ctrl-C keeps the last accepted parameters.
 
 The model's runtime checks must be `piezojax`'s value checks (`check_value`, which a fleet traces as per-actuator NaN
 refusals; `simulate_ode`'s failed integration, in the `BoucWenOscillator`, refuses the same way). An `eqx.error_if`
@@ -49,67 +49,16 @@ from ._problem import (
 from ._results import FitResult, summarise
 from ._solve import SETTLED_WINDOW, PrecisionWarning, caller_level, make_solver, settled
 from ._solver import (
-    PADDING,
-    RUNNING,
-    AbstractNormalSolver,
-    Bookkeeping,
-    Linearisation,
+    RESULTS,
     Progress,
     Verdict,
-    advance,
     as_progress_meter,
-    begin,
+    linearise_one,
+    result_names,
+    start,
+    step,
     verdict_of,
 )
-
-
-class _Carry(eqx.Module):
-    """One actuator's loop state (a leading fleet axis when stacked)."""
-
-    y: jax.Array  # the last accepted point (scaled parameters)
-    lin: Linearisation  # the linearisation at `y`
-    state: Any  # the solver's state
-    steps: jax.Array
-    book: Bookkeeping  # the loop's stopping tests, as `fitting.iterate`'s
-    tail: jax.Array  # the last `SETTLED_WINDOW + 1` accepted costs, oldest first (the first repeated): `settled`
-
-
-def _select(pred, new, old):
-    return jtu.tree_map(lambda a, b: jnp.where(pred, a, b), new, old)
-
-
-def _linearise_one(core: ProblemCore, u) -> tuple[Linearisation, jax.Array]:
-    r, g, h = core.normal_equations(u)
-    finite = jnp.all(jnp.isfinite(g)) & jnp.all(jnp.isfinite(h))
-    return Linearisation(r, 0.5 * jnp.sum(r**2), g, h), finite
-
-
-def _init_one(solver: AbstractNormalSolver, window: int, core: ProblemCore, u, padding):
-    lin, finite = _linearise_one(core, u)
-    book = begin(lin.cost, finite, window)
-    book = eqx.tree_at(lambda b: b.code, book, jnp.where(padding, PADDING, book.code).astype(jnp.int32))
-    tail = jnp.full((SETTLED_WINDOW + 1,), lin.cost)
-    return _Carry(u, lin, solver.init(u, lin), jnp.zeros((), jnp.int32), book, tail)
-
-
-def _step_one(solver: AbstractNormalSolver, window: int, max_rejections: int, core: ProblemCore, c: _Carry) -> _Carry:
-    """One iteration of one actuator (a finished actuator stays as it is)."""
-    active = c.book.code == RUNNING
-    # the trial point comes from the descent alone; the model is linearised there once, and the solver's step is
-    # then taken with those residuals (the same trial point: the descent is deterministic)
-    probe, _ = solver.step(lambda y: c.lin.r, c.y, c.lin, c.state, active)
-    lin_t, finite_t = _linearise_one(core, probe.y)
-    trial, new_state = solver.step(lambda y: lin_t.r, c.y, c.lin, c.state, active)
-    terminate = solver.terminate(c.y, c.lin, trial, new_state)
-    take = active & trial.accept & trial.ok
-    lin_t = Linearisation(lin_t.r, trial.cost, lin_t.g, lin_t.h)
-    book = advance(c.book, cost=trial.cost, take=take, ok=trial.ok, terminate=terminate, finite=finite_t,
-                   ftol=solver.ftol, window=window, max_rejections=max_rejections)
-    lin = _select(take, lin_t, c.lin)
-    state = _select(active, new_state, c.state)
-    state = _select(take, solver.relinearise(state, lin), state)
-    tail = jnp.where(take, jnp.concatenate([c.tail[1:], jnp.asarray(trial.cost, c.tail.dtype)[None]]), c.tail)
-    return _Carry(jnp.where(take, trial.y, c.y), lin, state, c.steps + active.astype(jnp.int32), book, tail)
 
 
 def _fleet_map(fn):
@@ -125,26 +74,25 @@ def _fleet_map(fn):
 @eqx.filter_jit
 def _fleet_init(solver, window, statics, arrays, u, padding):
     def one(arrays, u, padding):
-        return _init_one(solver, window, eqx.combine(arrays, statics), u, padding)
+        lin, finite = linearise_one(eqx.combine(arrays, statics), u)
+        return start(solver, u, lin, finite, window=window, keep=SETTLED_WINDOW, padding=padding)
 
     return _fleet_map(one)(arrays, u, padding)
 
 
-@eqx.filter_jit
 def _fleet_step(solver, window, max_rejections, statics, arrays, carry):
-    """One iteration of every actuator of a batch: one compiled step, which `fit_fleet` dispatches
-    `steps_per_call` times without waiting for the device, then reads the verdicts."""
-
-    def one(arrays, carry):
-        return _step_one(solver, window, max_rejections, eqx.combine(arrays, statics), carry)
-
-    return _fleet_map(one)(arrays, carry)
+    """One iteration of every actuator of a batch: the compiled `step` that `iterate` takes too, here with one
+    problem per row and the model linearised at each trial point; `fit_fleet` dispatches it `steps_per_call` times
+    without waiting for the device, then reads the verdicts."""
+    carry, _ = step(solver, statics, carry, jnp.zeros(carry.y.shape[:1], bool), rows=arrays, linearise=True,
+                    window=window, max_rejections=max_rejections)
+    return carry
 
 
 @eqx.filter_jit
 def _fleet_linearise(statics, arrays, u):
     def one(arrays, u):
-        return _linearise_one(eqx.combine(arrays, statics), u)[0]
+        return linearise_one(eqx.combine(arrays, statics), u)[0]
 
     return _fleet_map(one)(arrays, u)
 
@@ -509,8 +457,8 @@ class _Stacked:
         shapes = eqx.filter_eval_shape(_fleet_init, solver, _WINDOW, self.statics, arr_b, u_b, pad_b)
         carry = jtu.tree_map(lambda x: jnp.full(x.shape, np.nan if jnp.issubdtype(x.dtype, jnp.inexact) else 0,
                                                 x.dtype), shapes)
-        code = jnp.where(pad_b, PADDING, RUNNING).astype(jnp.int32)
-        carry = eqx.tree_at(lambda c: (c.y, c.book.code), carry, (u_b, code))
+        result = jax.vmap(lambda p: RESULTS.where(p, RESULTS.padding, RESULTS.running))(pad_b)
+        carry = eqx.tree_at(lambda c: (c.y, c.book.result), carry, (u_b, result))
         return {"carry": carry, "arrays": arr_b, "initial": np.full(u_b.shape[0], np.nan), "finished": False}
 
 
@@ -532,13 +480,13 @@ def _run_batches(fleet: _Stacked, solver, *, max_rejections: int, max_steps: int
                         batch["carry"] = _fleet_step(solver, _WINDOW, max_rejections, fleet.statics, batch["arrays"],
                                                      batch["carry"])
                     done = min(done + steps_per_call, max_steps)
-                    codes = np.asarray(batch["carry"].book.code)
-                    running = int(np.sum(codes == RUNNING)) + max(0, n - b0 - batch_size)
+                    running_b = np.asarray(batch["carry"].running)
+                    running = int(np.sum(running_b)) + max(0, n - b0 - batch_size)
                     best = float(np.nanmin(np.concatenate([np.asarray(b["carry"].lin.cost) for b in batches])[:n]))
                     accepted = np.concatenate([np.asarray(b["carry"].book.accepted) for b in batches])[:n]
                     meter_state = meter.step(meter_state, Progress(
                         "[fleet] ", done, best, int(np.median(accepted)), running, n, time.perf_counter() - t0))
-                    if not np.any(codes == RUNNING):
+                    if not np.any(running_b):
                         break
                 batch["finished"] = True
         except KeyboardInterrupt:
@@ -556,7 +504,7 @@ def _fleet_result(fleet: _Stacked, actuators: _Actuators, batches: list[dict], s
     """The batches joined into one `FleetResult`, with each actuator's verdict."""
     n = fleet.n
     # an actuator still running when the loop ended: interrupted, unless its batch ran to max_steps
-    cut = np.concatenate([np.full(b["carry"].book.code.shape[0], not b["finished"]) for b in batches])[:n]
+    cut = np.concatenate([np.full(b["carry"].y.shape[0], not b["finished"]) for b in batches])[:n]
 
     def joined(get):
         return jtu.tree_map(lambda *xs: jnp.concatenate(xs)[:n], *[get(b) for b in batches])
@@ -573,15 +521,15 @@ def _fleet_result(fleet: _Stacked, actuators: _Actuators, batches: list[dict], s
     core = eqx.combine(core_arrays, statics)
     initial_cost = np.concatenate([b["initial"] for b in batches])[:n]
     scales_np = np.asarray(core.scales)
-    codes = np.asarray(carry.book.code)
+    names = result_names(carry.book.result)
     since = np.asarray(carry.book.since)
     stalled_note = ", or a kink of an exact operator: refit with fitting.solve"
-    verdicts = [verdict_of(int(c), solver=solver, window=_WINDOW, since=int(k), max_steps=max_steps,
+    verdicts = [verdict_of(name, solver=solver, window=_WINDOW, since=int(k), max_steps=max_steps,
                            interrupted=interrupted and bool(cut[i]), stalled_note=stalled_note)
-                for i, (c, k) in enumerate(zip(codes, since))]
+                for i, (name, k) in enumerate(zip(names, since))]
     # as `fitting.solve`: an actuator stopped by max_steps whose cost no longer falls by what its data resolve
     accepted = np.asarray(carry.book.accepted)
-    tails = np.asarray(carry.tail)
+    tails = np.asarray(carry.book.recent)
     targets = actuators.targets
     rmse = _rmse(core, np.asarray(carry.lin.r), {c: np.array([w[c] for w in actuators.weights]) for c in targets})
     m = np.asarray(residual_counts(core.groups))

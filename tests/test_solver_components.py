@@ -39,18 +39,22 @@ def problem():
 
 
 def test_results_enumeration_names_every_code_with_a_message():
-    from fitting._solver import HARD_FAILURES, SUCCESSES, result_code, result_message
+    """One enumeration with messages: what the loop carries per start, and every code, verdict and success set
+    derived from it."""
+    from fitting._solver import CODES, HARD_FAILURES, LOOP_ONLY, NAMES, SUCCESSES, result_code, result_message
 
-    codes = set(fitting.RESULTS._name_to_item)
-    assert {"successful", "converged_at_kink", "converged_zero_residual", "max_steps_reached", "stalled",
-            "not_stationary", "interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed",
-            "outpaced"} == codes
-    assert set(SUCCESSES) | set(HARD_FAILURES) < codes
-    for code in codes:
+    assert len(fitting.RESULTS) == len(NAMES)
+    assert set(CODES) == {"successful", "converged_at_kink", "converged_zero_residual", "max_steps_reached", "stalled",
+                          "not_stationary", "interrupted", "nonfinite_initial", "nonfinite", "linear_solve_failed",
+                          "outpaced"}
+    assert set(CODES) | set(LOOP_ONLY) | {"successful_flat"} == set(NAMES)
+    assert set(SUCCESSES) | set(HARD_FAILURES) < set(CODES) and not set(SUCCESSES) & set(HARD_FAILURES)
+    for code in CODES:
         item = getattr(fitting.RESULTS, code)
         assert result_code(item) == code and result_message(code) == fitting.RESULTS[item] and result_message(code)
+    assert result_code(fitting.RESULTS.successful_flat) == "successful"  # two tests of convergence, one code
     # usable under jit and vmap, as optx.RESULTS
-    batch = jax.vmap(lambda ok: fitting.RESULTS.where(ok, fitting.RESULTS.successful, fitting.RESULTS.stalled))(
+    batch = jax.vmap(lambda ok: fitting.RESULTS.where(ok, fitting.RESULTS.successful_flat, fitting.RESULTS.stalled))(
         jnp.array([True, False]))
     assert result_code(batch) == ["successful", "stalled"]
     assert fitting.Verdict("converged_at_kink", "r").success and fitting.Verdict("nonfinite", "r").hard
@@ -65,48 +69,58 @@ def test_the_loops_stopping_tests_are_one_function_in_order():
         step = jax.jit(lambda b, c, t: S.advance(b, cost=c, take=t, ok=jnp.asarray(ok), finite=jnp.asarray(finite),
                                                  terminate=jnp.asarray(terminate), ftol=1e-2, window=window,
                                                  max_rejections=max_rejections))
-        codes = []
+        names = []
         for c, t in zip(costs, takes):
             book = step(book, jnp.asarray(c), jnp.asarray(t))
-            codes.append(int(book.code))
-        return book, codes
+            names.append(S.result_names(book.result))
+        return book, names
 
     # decreasing costs keep running; three accepted steps that lower the cost by < 1 % each: converged (flat)
-    book, codes = run([5.0, 2.0, 1.0, 0.999, 0.998, 0.997], [True] * 6)
-    assert codes == [S.RUNNING] * 5 + [S.CONVERGED_FLAT] and int(book.accepted) == 6
+    book, names = run([5.0, 2.0, 1.0, 0.999, 0.998, 0.997], [True] * 6)
+    assert names == ["running"] * 5 + ["successful_flat"] and int(book.accepted) == 6
     assert np.asarray(book.recent).tolist() == [1.0, 0.999, 0.998, 0.997]
+    # a longer record of costs (`keep`, the fleet's `settled` window) does not change the test
+    long = S.begin(jnp.asarray(10.0), jnp.asarray(True), 3, keep=8)
+    assert long.recent.shape == (9,)
+    for c in [5.0, 2.0, 1.0, 0.999, 0.998, 0.997]:
+        long = S.advance(long, cost=jnp.asarray(c), take=jnp.asarray(True), ok=jnp.asarray(True),
+                         terminate=jnp.asarray(False), finite=jnp.asarray(True), ftol=1e-2, window=3, max_rejections=4)
+    assert S.result_names(long.result) == "successful_flat"
     # a stopped start stays as it is: later steps change nothing
     again = S.advance(book, cost=jnp.asarray(0.1), take=jnp.asarray(True), ok=jnp.asarray(True),
                       terminate=jnp.asarray(False), finite=jnp.asarray(True), ftol=1e-2, window=3, max_rejections=4)
     assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.all(a == b)), again, book))
     # fewer than `window` accepted steps are never flat, however small the decrease
-    assert run([9.9999, 9.9998], [True, True])[1] == [S.RUNNING, S.RUNNING]
+    assert run([9.9999, 9.9998], [True, True])[1] == ["running", "running"]
     # rejected trials count up to the stall; an accepted one in between resets the count
-    book, codes = run([np.nan] * 2 + [9.0] + [np.inf] * 4, [False, False, True] + [False] * 4)
-    assert codes == [S.RUNNING] * 6 + [S.STALLED] and int(book.since) == 4
+    book, names = run([np.nan] * 2 + [9.0] + [np.inf] * 4, [False, False, True] + [False] * 4)
+    assert names == ["running"] * 6 + ["stalled"] and int(book.since) == 4
     # precedence: a failed linear solve before the solver's own test, that before the flat test, a non-finite
     # Jacobian at the accepted point last
-    assert run([1.0], [False], ok=False, terminate=True)[1] == [S.LINEAR_SOLVE_FAILED]
-    assert run([9.99], [True], terminate=True, window=1)[1] == [S.CONVERGED]  # flat too, but the solver first
-    assert run([9.99], [True], window=1)[1] == [S.CONVERGED_FLAT]
-    assert run([5.0], [True], finite=False)[1] == [S.NONFINITE]
-    assert run([5.0], [False], finite=False)[1] == [S.RUNNING]  # not accepted: its Jacobian is not used
+    assert run([1.0], [False], ok=False, terminate=True)[1] == ["linear_solve_failed"]
+    assert run([9.99], [True], terminate=True, window=1)[1] == ["successful"]  # flat too, but the solver first
+    assert run([9.99], [True], window=1)[1] == ["successful_flat"]
+    assert run([5.0], [True], finite=False)[1] == ["nonfinite"]
+    assert run([5.0], [False], finite=False)[1] == ["running"]  # not accepted: its Jacobian is not used
     # a start that is not finite at its initial point never runs
-    assert int(S.begin(jnp.asarray(np.nan), jnp.asarray(True), 3).code) == S.NONFINITE_INITIAL
-    assert int(S.begin(jnp.asarray(1.0), jnp.asarray(False), 3).code) == S.NONFINITE_INITIAL
-    # every code has a verdict; the reasons carry the numbers of the run
+    assert S.result_names(S.begin(jnp.asarray(np.nan), jnp.asarray(True), 3).result) == "nonfinite_initial"
+    assert S.result_names(S.begin(jnp.asarray(1.0), jnp.asarray(False), 3).result) == "nonfinite_initial"
+    # every state the loop ends in has a verdict; the reasons carry the numbers of the run
     solver = fitting.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
-    codes = {S.CONVERGED: "successful", S.CONVERGED_FLAT: "successful", S.STALLED: "stalled",
-             S.LINEAR_SOLVE_FAILED: "linear_solve_failed", S.NONFINITE: "nonfinite",
-             S.NONFINITE_INITIAL: "nonfinite_initial", S.RUNNING: "max_steps_reached"}
-    for code, name in codes.items():
-        assert S.verdict_of(code, solver=solver, window=3, since=7, max_steps=11).code == name
-    assert "in 7 consecutive" in S.verdict_of(S.STALLED, solver=solver, window=3, since=7, max_steps=11).reason
-    assert "max_steps = 11" in S.verdict_of(S.RUNNING, solver=solver, window=3, since=0, max_steps=11).reason
-    assert S.verdict_of(S.RUNNING, solver=solver, window=3, since=0, max_steps=11, interrupted=True).code == (
+    verdicts = {"successful": "successful", "successful_flat": "successful", "stalled": "stalled",
+                "linear_solve_failed": "linear_solve_failed", "nonfinite": "nonfinite",
+                "nonfinite_initial": "nonfinite_initial", "running": "max_steps_reached", "outpaced": "outpaced"}
+    for name, code in verdicts.items():
+        assert S.verdict_of(name, solver=solver, window=3, since=7, max_steps=11).code == code
+    assert "in 7 consecutive" in S.verdict_of("stalled", solver=solver, window=3, since=7, max_steps=11).reason
+    assert "max_steps = 11" in S.verdict_of("running", solver=solver, window=3, since=0, max_steps=11).reason
+    assert "last 3 below ftol" in S.verdict_of("successful_flat", solver=solver, window=3, since=0,
+                                               max_steps=11).reason
+    assert S.verdict_of("running", solver=solver, window=3, since=0, max_steps=11, interrupted=True).code == (
         "interrupted")
-    with pytest.raises(ValueError, match="no verdict"):
-        S.verdict_of(S.PADDING, solver=solver, window=3, since=0, max_steps=11)
+    for name in ("padding", "no_such_state"):
+        with pytest.raises(ValueError, match="no verdict"):
+            S.verdict_of(name, solver=solver, window=3, since=0, max_steps=11)
 
 
 def test_a_refused_trial_shrinks_only_its_own_start(problem):
@@ -261,7 +275,7 @@ def test_fit_in_single_precision_warns(tmp_path):
 def test_a_start_is_outpaced_only_when_it_cannot_catch_up():
     """`outpaced`: a running start is stopped once another converged below it, it has had twice that one's steps,
     and at the rate of its last ten accepted steps it would not reach that cost within max_steps."""
-    from fitting._solver import CONVERGED, RUNNING, outpaced
+    from fitting._solver import outpaced
 
     steps_done = list(range(0, 41, 2))  # 20 accepted steps, one every other step
 
@@ -272,7 +286,7 @@ def test_a_start_is_outpaced_only_when_it_cannot_catch_up():
     slow, fast = crawling(1e-4), crawling(0.05, top=9.0)  # fast: 9 e^{-2} = 1.22 at step 40, halving every 14 steps
     histories = [winner[0], slow, fast, crawling(1e-4, top=0.9), slow[:5]]
     steps_of = [winner[1], steps_done, steps_done, steps_done, steps_done[:5]]
-    codes = np.array([CONVERGED, RUNNING, RUNNING, RUNNING, RUNNING])
+    codes = ["successful_flat", "running", "running", "running", "running"]
     steps = np.array([20, 40, 40, 40, 40])
     out = outpaced(histories, steps_of, codes, steps, 40, max_steps=500)
     # the slow one needs ln 2 / 1e-4 ~ 6900 more steps; the fast one ~ 4; the third is below the winner; the last has
@@ -280,7 +294,7 @@ def test_a_start_is_outpaced_only_when_it_cannot_catch_up():
     assert list(out) == [1] and "converged at cost 1.000000e+00 after 20" in out[1]
     assert outpaced(histories, steps_of, codes, steps, 40, max_steps=10_000) == {}  # enough steps left for it
     assert outpaced(histories, steps_of, codes, np.array([21, 39, 39, 39, 39]), 39, max_steps=500) == {}  # < 2 k*
-    assert outpaced(histories, steps_of, np.array([RUNNING] * 5), steps, 40, max_steps=500) == {}  # none converged
+    assert outpaced(histories, steps_of, ["running"] * 5, steps, 40, max_steps=500) == {}  # none converged
     assert outpaced(histories, steps_of, codes, steps, 40, max_steps=40) == {}  # the last step: max_steps_reached
 
 

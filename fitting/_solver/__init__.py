@@ -1,8 +1,9 @@
 r"""The least-squares solvers, as optimistix splits them: a small abstract solver (`init` / `step` / `terminate`),
 each concrete solver a *descent* (the step from a linearisation) and a *search* (whether to take it, and the next
-step size or radius); a results enumeration with messages; a pluggable progress meter; the loop's own stopping
-tests (`advance`: flat cost, stall, non-finite Jacobian; shared with `fit_fleet`) and one verdict per stopping code
-(`verdict_of`); and `iterate`, the loop that runs a solver from several starts at once.
+step size or radius); the outcomes (`RESULTS`, an enumeration with messages that the loop carries per start, and
+what is derived from it: codes, verdicts, success sets); a pluggable progress meter; the loop's own stopping tests
+(`advance`: flat cost, stall, non-finite Jacobian); `step`, the one compiled iteration of a batch of starts that
+`iterate` and `fit_fleet` both take; and `iterate`, the loop that runs a solver from several starts at once.
 
 Everything works in normal-equation form: a linearisation at an accepted point is $(r, \tfrac12\|r\|^2, g, H)$ with
 $g = J^\top r$ and $H = J^\top J$ (`Problem.normal_equations`: forward mode, a chunk of experiments at a time, the
@@ -12,18 +13,33 @@ The multi-start bookkeeping above one level of continuation (levels of smoothing
 of the best start, the report) is `fitting.solve`'s.
 """
 
+from .iteration import (
+    Carry as Carry,
+    iteration as iteration,
+    linearise_one as linearise_one,
+    reject as reject,
+    rejected as rejected,
+    start as start,
+    step as step,
+    stop as stop,
+)
 from .loop import (
     Run as Run,
     iterate as iterate,
 )
 from .outcomes import (
+    CODES as CODES,
     HARD_FAILURES as HARD_FAILURES,
+    LOOP_ONLY as LOOP_ONLY,
+    NAMES as NAMES,
     RESULTS as RESULTS,
     SUCCESSES as SUCCESSES,
     FitError as FitError,
     Verdict as Verdict,
     result_code as result_code,
     result_message as result_message,
+    result_names as result_names,
+    verdict_of as verdict_of,
 )
 from .progress import (
     AbstractProgressMeter as AbstractProgressMeter,
@@ -42,19 +58,9 @@ from .solvers import (
     TrustRegionDescent as TrustRegionDescent,
 )
 from .stopping import (
-    CONVERGED as CONVERGED,
-    CONVERGED_FLAT as CONVERGED_FLAT,
-    LINEAR_SOLVE_FAILED as LINEAR_SOLVE_FAILED,
-    NONFINITE as NONFINITE,
-    NONFINITE_INITIAL as NONFINITE_INITIAL,
     OUTPACE_WINDOW as OUTPACE_WINDOW,
-    OUTPACED as OUTPACED,
-    PADDING as PADDING,
-    RUNNING as RUNNING,
-    STALLED as STALLED,
     Bookkeeping as Bookkeeping,
     advance as advance,
     begin as begin,
     outpaced as outpaced,
-    verdict_of as verdict_of,
 )

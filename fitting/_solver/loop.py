@@ -10,53 +10,25 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array
 
-from .._problem import ProblemCore, linearise, model_error, over_starts
-from .outcomes import Verdict
+from .._problem import ProblemCore, linearise, model_error
+from .iteration import Carry, reject, relinearised, start, step, stop
+from .outcomes import RESULTS, Verdict, result_names, verdict_of
 from .progress import AbstractProgressMeter, Progress
 from .solvers import AbstractNormalSolver, Linearisation, Trial
-from .stopping import OUTPACED, RUNNING, STALLED, advance, begin, outpaced, verdict_of
+from .stopping import outpaced
 
 # ---------------------------------------------------------------------------------------------------- the loop
-
-
-@eqx.filter_jit
-def _init(solver, y, lin):
-    return eqx.filter_vmap(solver.init)(y, lin)
-
-
-@eqx.filter_jit
-def _step(solver, core: ProblemCore, y, lin, state, active):
-    """`solver.step` and `solver.terminate` for every start (leading axis of all but `solver`, `core`)."""
-
-    def one(y, lin, state, active):
-        trial, new_state = solver.step(core.residuals, y, lin, state, active)
-        terminate = solver.terminate(y, lin, trial, new_state)
-        # the step itself stays inside (an output would change how XLA fuses y + step, e.g. into an FMA)
-        return eqx.tree_at(lambda t: t.step, trial, None), new_state, terminate
-
-    return over_starts(one, (0, 0, 0, 0), y.shape[0])(y, lin, state, active)
-
-
-@eqx.filter_jit
-def _relinearise(solver, state, lin, mask):
-    new = eqx.filter_vmap(solver.relinearise)(state, lin)
-    return _select(mask, new, state)
-
-
-@eqx.filter_jit
-def _refuse(solver, state, new_state, mask):
-    """`solver.refuse(state)` where `mask` (the starts whose trial the model refused), `new_state` elsewhere."""
-    return _select(mask, eqx.filter_vmap(solver.refuse)(state), new_state)
-
-
-def _select(mask, new, old):
-    return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
 @jax.jit
 def _where(mask, new, old):
     """Per start (leading axis): `new` where `mask`, else `old` (one compiled call for a whole pytree)."""
-    return _select(mask, new, old)
+    return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
+@eqx.filter_jit
+def _start(solver, y, lin, finite, window):
+    return eqx.filter_vmap(lambda y, lin, finite: start(solver, y, lin, finite, window=window))(y, lin, finite)
 
 
 @dataclasses.dataclass
@@ -73,30 +45,18 @@ class Run:
     linearisation: Linearisation | None = None  # at `u`, when the last accepted point was linearised
 
 
-def _refused_trials(solver, core, y, lin, state, active) -> np.ndarray:
-    """Which active starts' trial points the model refuses (its runtime checks raise): each start's trial alone."""
-    refused = np.zeros(y.shape[0], bool)
-    for i in np.flatnonzero(active):
-        one = jtu.tree_map(lambda x: x[i : i + 1], (y, lin, state))
+def _refused_trials(solver, core, carry: Carry, running: np.ndarray, window: int, max_rejections: int
+                    ) -> np.ndarray:
+    """Which running starts' trial points the model refuses (its runtime checks raise): each start's trial alone."""
+    refused = np.zeros(running.shape[0], bool)
+    for i in np.flatnonzero(running):
+        one = jtu.tree_map(lambda x: x[i : i + 1], carry)
         try:
-            jax.block_until_ready(_step(solver, core, *one, jnp.ones((1,), bool)))
+            jax.block_until_ready(step(solver, core, one, jnp.zeros((1,), bool), linearise=False,
+                                       window=window, max_rejections=max_rejections))
         except eqx.EquinoxRuntimeError:
             refused[i] = True
     return refused
-
-
-@eqx.filter_jit
-def _begin(cost, finite, window):
-    return jax.vmap(lambda c, f: begin(c, f, window))(cost, finite)
-
-
-@eqx.filter_jit
-def _advance(book, cost, take, ok, terminate, ftol, window, max_rejections):
-    def one(book, cost, take, ok, terminate):
-        return advance(book, cost=cost, take=take, ok=ok, terminate=terminate, finite=jnp.asarray(True), ftol=ftol,
-                       window=window, max_rejections=max_rejections)
-
-    return jax.vmap(one)(book, cost, take, ok, terminate)
 
 
 def _linearise_starts(core: ProblemCore, y, which: np.ndarray, lin: Linearisation | None):
@@ -139,46 +99,44 @@ def _initial_verdicts(core: ProblemCore, y, cost: np.ndarray, finite: np.ndarray
     return verdicts
 
 
-def _trials(solver, core: ProblemCore, y, lin: Linearisation, state, active: np.ndarray):
-    """One batched `_step` of the active starts, as `((trial, new_state, terminate), refused, message)`: `refused`
-    marks the starts whose trial point the model refused (its runtime check raised, `message` its first line; the
-    others are stepped as usual, a refused start stays at its point)."""
-    n_starts = y.shape[0]
-    refused = np.zeros(n_starts, bool)
+def _trials(solver, core: ProblemCore, carry: Carry, running: np.ndarray, window: int, max_rejections: int):
+    """One batched `step` of the running starts, as `(carry, trial, refused, message)`: `refused` marks the starts
+    whose trial point the model refused (its runtime check raised, `message` its first line): they take a rejected
+    trial (`rejected`), the others are stepped as usual."""
+    n_starts = running.shape[0]
+    kw = dict(linearise=False, window=window, max_rejections=max_rejections)
     try:
-        out = _step(solver, core, y, lin, state, jnp.asarray(active))
+        out = step(solver, core, carry, jnp.zeros((n_starts,), bool), **kw)
         jax.block_until_ready(out)
-        return out, refused, ""
+        return *out, np.zeros(n_starts, bool), ""
     except eqx.EquinoxRuntimeError as e:
         # the model refused a trial point (a runtime check, e.g. a stiffness that underflowed to 0): find
         # which starts' trials it refuses and step the others as usual
         message = str(e).strip().splitlines()[0]
-    refused = _refused_trials(solver, core, y, lin, state, active) if n_starts > 1 else active.copy()
-    if not refused.any():  # raised only batched: every active start's trial counts as refused
-        refused = active.copy()
-    out = None
-    if (active & ~refused).any():
-        try:  # the others' trials, batched as usual (a refused start stays at its point)
-            out = _step(solver, core, y, lin, state, jnp.asarray(active & ~refused))
-            jax.block_until_ready(out)
-        except eqx.EquinoxRuntimeError:
-            refused = active.copy()
-            out = None
-    if out is None:  # no trial taken: every start stays where it is
+    refused = _refused_trials(solver, core, carry, running, window, max_rejections) if n_starts > 1 else running.copy()
+    if not refused.any():  # raised only batched: every running start's trial counts as refused
+        refused = running.copy()
+    try:
+        out = step(solver, core, carry, jnp.asarray(refused), **kw)
+        jax.block_until_ready(out)
+    except eqx.EquinoxRuntimeError:  # no trial taken: every running start's trial counts as refused
+        refused = running.copy()
         no = jnp.zeros((n_starts,), bool)
-        out = Trial(None, y, lin.r, lin.cost, no, ~no), state, no
-    return out, refused, message
+        out = (reject(solver, carry, carry, jnp.asarray(refused), window=window, max_rejections=max_rejections),
+               Trial(None, carry.y, None, carry.lin.cost, no, ~no))
+    return *out, refused, message
 
 
-def _runs(y, lin: Linearisation, steps, histories, history_steps, verdicts, fresh, *, solver, window: int,
-          max_steps: int) -> list["Run"]:
+def _runs(carry: Carry, histories, history_steps, verdicts, fresh, *, solver, window: int, max_steps: int
+          ) -> list["Run"]:
     """Each start's `Run` at the end of `iterate` (a start without a verdict ran out of steps)."""
     runs = []
-    for i in range(y.shape[0]):
-        verdict = verdicts[i] or verdict_of(RUNNING, solver=solver, window=window, since=0, max_steps=max_steps)
-        lin_i = jtu.tree_map(lambda x: x[i], lin) if fresh[i] else None
+    steps = np.asarray(carry.steps)
+    for i in range(carry.y.shape[0]):
+        verdict = verdicts[i] or verdict_of("running", solver=solver, window=window, since=0, max_steps=max_steps)
+        lin_i = jtu.tree_map(lambda x: x[i], carry.lin) if fresh[i] else None
         accepted = len(histories[i]) - 1
-        runs.append(Run(y[i], int(steps[i]), accepted, histories[i], history_steps[i], verdict, lin_i))
+        runs.append(Run(carry.y[i], int(steps[i]), accepted, histories[i], history_steps[i], verdict, lin_i))
     return runs
 
 
@@ -186,9 +144,9 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
             meter: AbstractProgressMeter, label: str = "", max_rejections: int = 40, window: int = 5,
             outpace: bool = True) -> list[Run]:
     r"""Run `solver` from every start in `u0` (shape `(starts, p)`) at once, stepped from Python (progress meter,
-    Ctrl-C): the starts run in lockstep (their trials under `vmap`; their linearisations one at a time on
-    XLA:CPU, see `_linearise_starts`), a finished start is frozen, and each has its own state, history and
-    verdict.
+    Ctrl-C): the starts run in lockstep (their trials in one compiled `step`, as `fit_fleet`'s; their
+    linearisations one at a time on XLA:CPU, see `_linearise_starts`), a finished start is frozen, and each has its
+    own state, history and verdict.
 
     Besides the solver's own test (`terminate`), a start ends by the loop's tests (`advance`): converged when its
     accepted steps no longer lower the cost (mean relative decrease over the last `window` below the solver's
@@ -202,102 +160,75 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     caught and the starts' trials are run one by one to find the refused ones. An accepted point whose Jacobian is
     not finite is undone the same way, as a refused trial (measured: a Preisach + creep fit of a 1e6-sample record
     stepped a weakly determined time constant to 1e-249 s, where its derivative is 0 * inf, and ended there as
-    failed; it now goes on). (`fit_fleet` still ends such an actuator as `nonfinite`.)
+    failed; it now goes on). (`fit_fleet` ends such an actuator as `nonfinite`.)
     """
     n_starts = u0.shape[0]
-    ftol = jnp.asarray(float(solver.ftol))
-    y = u0
-    r, cost, g, h, finite = _linearise_starts(core, y, np.ones(n_starts, bool), None)
-    lin = Linearisation(r, cost, g, h)
-    book = _begin(cost, finite, window)
-    cost_np, finite_np = np.asarray(cost), np.asarray(finite)
-    histories = [[float(c)] for c in cost_np]
+    kw = dict(window=window, max_rejections=max_rejections)
+    r, cost, g, h, finite = _linearise_starts(core, u0, np.ones(n_starts, bool), None)
+    carry = _start(solver, u0, Linearisation(r, cost, g, h), finite, window)
+    histories = [[float(c)] for c in np.asarray(cost)]
     history_steps = [[0] for _ in range(n_starts)]
-    steps = np.zeros(n_starts, int)
-    fresh = np.ones(n_starts, bool)  # whether `lin` is at the start's current point
-    verdicts = _initial_verdicts(core, y, cost_np, finite_np)
-    active = np.asarray(book.code) == RUNNING
-    state = _init(solver, y, lin)
+    fresh = np.ones(n_starts, bool)  # whether `carry.lin` is complete at the start's current point
+    verdicts = _initial_verdicts(core, u0, np.asarray(cost), np.asarray(finite))
+    running = np.asarray(carry.running)
     meter_state = meter.init(label, n_starts)
     t0 = time.perf_counter()
     model_errors = [""] * n_starts  # per start, the last runtime check the model raised at its trial point
     try:
         for k in range(1, max_steps + 1):
-            if not active.any():
+            if not running.any():
                 break
-            out, refused, message = _trials(solver, core, y, lin, state, active)
+            before, fresh_before = carry, fresh.copy()
+            carry, trial, refused, message = _trials(solver, core, carry, running, window, max_rejections)
             for i in np.flatnonzero(refused):
                 model_errors[i] = message
-            trial, new_state, terminate = out
-            if refused.any():
-                new_state = _refuse(solver, state, new_state, jnp.asarray(refused))
-            # a refused trial: a rejected one (the linear solve did not fail)
-            kept = jnp.asarray(~refused)
-            ok = trial.ok | ~kept
-            take_j = trial.accept & ok & kept
-            book_before, fresh_before = book, fresh.copy()
-            book = _advance(book, trial.cost, take_j, ok, terminate & kept, ftol, window, max_rejections)
-            codes, take = np.asarray(book.code), active & np.asarray(take_j)
-            cost_eval_np = np.asarray(trial.cost)
-            for i in np.flatnonzero(active):
-                steps[i] = k
-                if take[i]:
-                    fresh[i] = False
-                    histories[i].append(float(cost_eval_np[i]))
-                    history_steps[i].append(k)
-                if codes[i] == STALLED and not model_errors[i] and not np.isfinite(cost_eval_np[i]):
+            names = result_names(carry.book.result)
+            take, cost_eval = np.asarray(trial.accept), np.asarray(trial.cost)
+            for i in np.flatnonzero(take):
+                fresh[i] = False
+                histories[i].append(float(cost_eval[i]))
+                history_steps[i].append(k)
+            for i in np.flatnonzero(running):
+                if names[i] == "stalled" and not model_errors[i] and not np.isfinite(cost_eval[i]):
                     model_errors[i] = model_error(core, trial.y[i])  # a refusal traced as NaN
-            y_before, lin_before, state_before = y, lin, state
-            y, lin_r, lin_cost = _where(jnp.asarray(take), (trial.y, trial.r, trial.cost), (y, lin.r, lin.cost))
-            lin = Linearisation(lin_r, lin_cost, lin.g, lin.h)
-            state = _where(jnp.asarray(active), new_state, state)
-            relinearise = take & (codes == RUNNING)
+            relinearise = take & (np.asarray(names) == "running")
             if relinearise.any():
-                _, _, g, h, finite = _linearise_starts(core, y, relinearise, lin)
+                _, _, g, h, finite = _linearise_starts(core, carry.y, relinearise, carry.lin)
                 undo = relinearise & ~np.asarray(finite)
                 if undo.any():
                     # derivatives not finite at the new point (e.g. a weakly determined time constant stepped to
                     # 1e-249 s, where d exp(-dt/tau)/d tau is 0 * inf): the step is undone and counted as a refused
                     # trial, so that the next one is shorter; a start that keeps meeting such points stalls
                     # (`max_rejections`)
-                    u = jnp.asarray(undo)
-                    book = _advance(book_before, trial.cost, take_j & ~u, ok, terminate & kept & ~u, ftol, window,
-                                    max_rejections)
-                    codes = np.asarray(book.code)
-                    y, lin_r, lin_cost = _where(u, (y_before, lin_before.r, lin_before.cost), (y, lin.r, lin.cost))
-                    g, h = _where(u, (lin_before.g, lin_before.h), (g, h))
-                    state = _refuse(solver, state_before, state, u)
+                    carry = reject(solver, before, carry, jnp.asarray(undo), **kw)
+                    names = result_names(carry.book.result)
                     for i in np.flatnonzero(undo):
                         histories[i].pop()
                         history_steps[i].pop()
                         fresh[i] = fresh_before[i]
                     relinearise = relinearise & ~undo
-                lin = Linearisation(lin_r, lin_cost, g, h)
-                state = _relinearise(solver, state, lin, jnp.asarray(relinearise))
+                carry = relinearised(solver, carry, g, h, jnp.asarray(relinearise))
                 fresh |= relinearise
-            ended = np.flatnonzero(active & (codes != RUNNING))
-            since = np.asarray(book.since) if ended.size else None
+            ended = np.flatnonzero(running & (np.asarray(names) != "running"))
+            since = np.asarray(carry.book.since) if ended.size else None
             for i in ended:
                 why = f"; last model error: {model_errors[i]}" if model_errors[i] else ""
-                verdicts[i] = verdict_of(int(codes[i]), solver=solver, window=window, since=int(since[i]),
+                verdicts[i] = verdict_of(names[i], solver=solver, window=window, since=int(since[i]),
                                          max_steps=max_steps, stalled_note=why)
             if n_starts > 1 and outpace:
-                beaten = outpaced(histories, history_steps, codes, steps, k, max_steps)
+                beaten = outpaced(histories, history_steps, names, np.asarray(carry.steps), k, max_steps)
                 for i, reason in beaten.items():
                     verdicts[i] = Verdict("outpaced", reason)
                 if beaten:
-                    mask = np.isin(np.arange(n_starts), list(beaten))
-                    book = eqx.tree_at(lambda b: b.code, book, jnp.where(jnp.asarray(mask), OUTPACED, book.code))
-                    codes = np.asarray(book.code)
-            active = codes == RUNNING
+                    carry = stop(carry, jnp.asarray(np.isin(np.arange(n_starts), list(beaten))), RESULTS.outpaced)
+            running = np.asarray(carry.running)
             best = min(hh[-1] for hh in histories)
-            meter_state = meter.step(meter_state, Progress(label, k, best, len(histories[0]) - 1, int(active.sum()),
+            meter_state = meter.step(meter_state, Progress(label, k, best, len(histories[0]) - 1, int(running.sum()),
                                                            n_starts, time.perf_counter() - t0))
     except KeyboardInterrupt:
-        for i in np.flatnonzero(active):
-            verdicts[i] = verdict_of(RUNNING, solver=solver, window=window, since=0, max_steps=max_steps,
+        for i in np.flatnonzero(running):
+            verdicts[i] = verdict_of("running", solver=solver, window=window, since=0, max_steps=max_steps,
                                      interrupted=True)
     finally:
         meter.close(meter_state)
-    return _runs(y, lin, steps, histories, history_steps, verdicts, fresh, solver=solver, window=window,
-                 max_steps=max_steps)
+    return _runs(carry, histories, history_steps, verdicts, fresh, solver=solver, window=window, max_steps=max_steps)

@@ -32,7 +32,8 @@ class Linearisation(eqx.Module):
 
 class Trial(eqx.Module):
     """A solver's trial step: the step and the trial point `y` (the point plus the step), its residuals and cost,
-    whether the search accepts it, and whether the linear algebra of the step succeeded."""
+    whether the search accepts it, whether the linear algebra of the step succeeded, and what the evaluation of the
+    trial point returned besides the residuals (`aux`: e.g. the linearisation there)."""
 
     step: Float[Array, " p"]
     y: Float[Array, " p"]
@@ -40,6 +41,7 @@ class Trial(eqx.Module):
     cost: Float[Array, ""]
     accept: Bool[Array, ""]
     ok: Bool[Array, ""]
+    aux: Any = None
 
 
 class AbstractNormalSolver(eqx.Module):
@@ -47,8 +49,9 @@ class AbstractNormalSolver(eqx.Module):
     stepped from the outside so that each start of a batch keeps its own state):
 
     - `init(y, lin)`: the solver's state at the start `y` with its linearisation `lin`;
-    - `step(residuals, y, lin, state, active)`: a trial step from the linearisation and the residuals at the trial
-      point (`residuals(y)`: the weighted residual vector); a start that is not `active` stays where it is;
+    - `step(fn, y, lin, state, active)`: a trial step from the linearisation and the residuals at the trial point
+      (`fn(y)` is `(r, aux)`, the weighted residual vector and anything else the caller evaluates there, returned
+      as the trial's `aux`, as optimistix's `has_aux`); a start that is not `active` stays where it is;
     - `terminate(y, lin, trial, state)`: whether the trial met the solver's convergence test;
     - `relinearise(state, lin)`: the state after the model is linearised again at an accepted point;
     - `refuse(state)`: the state after the model refused the trial point (a runtime check), as after a failed trial.
@@ -65,7 +68,7 @@ class AbstractNormalSolver(eqx.Module):
     def init(self, y: Array, lin: Linearisation) -> Any: ...
 
     @abc.abstractmethod
-    def step(self, residuals: Callable[[Array], Array], y: Array, lin: Linearisation, state: Any,
+    def step(self, fn: Callable[[Array], tuple[Array, Any]], y: Array, lin: Linearisation, state: Any,
              active: Bool[Array, ""]) -> tuple[Trial, Any]: ...
 
     @abc.abstractmethod
@@ -111,7 +114,7 @@ class LevenbergMarquardt(AbstractNormalSolver):
         return optx.FunctionInfo.EvalGradHessian(
             lin.cost, lin.g, lx.MatrixLinearOperator(lin.h, lx.positive_semidefinite_tag))
 
-    def step(self, residuals, y, lin, state, active):
+    def step(self, fn, y, lin, state, active):
         step_size, search_state = state
         f_info = self._f_info(lin)
         descent_state = self.descent.query(y, f_info, self.descent.init(y, f_info))
@@ -119,12 +122,12 @@ class LevenbergMarquardt(AbstractNormalSolver):
         # a finished start (e.g. non-finite at its start) stays where it is: its model is never evaluated elsewhere
         delta = jnp.where(active, delta, 0.0)
         y_eval = y + delta
-        r_eval = residuals(y_eval)
+        r_eval, aux = fn(y_eval)
         cost_eval = 0.5 * jnp.sum(r_eval**2)
         step_size, accept, _, search_state = self.search.step(
             jnp.array(False), y, y_eval, f_info, optx.FunctionInfo.Eval(cost_eval), search_state)
         accept = accept & jnp.isfinite(cost_eval)
-        trial = Trial(delta, y_eval, r_eval, cost_eval, accept, result == optx.RESULTS.successful)
+        trial = Trial(delta, y_eval, r_eval, cost_eval, accept, result == optx.RESULTS.successful, aux)
         return trial, (step_size, search_state)
 
     def terminate(self, y, lin, trial, state):
@@ -253,13 +256,13 @@ class TrustRegion(AbstractNormalSolver):
         zero = jnp.zeros((), y.dtype)
         return _TrustRegionState(scale_inv, jnp.where(radius > 0, radius, 1.0), zero, zero, zero)
 
-    def step(self, residuals, y, lin, state, active):
+    def step(self, fn, y, lin, state, active):
         step_h, alpha, predicted, d = self.descent.step(state.radius, state.scale_inv, state.alpha, lin,
                                                         lin.r.shape[0])
         step_h = jnp.where(active, step_h, 0.0)
         step = d * step_h
         y_eval = y + step
-        r_eval = residuals(y_eval)
+        r_eval, aux = fn(y_eval)
         cost_eval = 0.5 * jnp.sum(r_eval**2)
         finite = jnp.isfinite(cost_eval)
         actual = lin.cost - cost_eval
@@ -267,7 +270,7 @@ class TrustRegion(AbstractNormalSolver):
         radius = self.search.step(state.radius, ratio, jnp.linalg.norm(step_h), finite)
         radius = jnp.where(active, radius, state.radius)
         alpha = alpha * state.radius / radius
-        trial = Trial(step, y_eval, r_eval, cost_eval, finite & (actual > 0), jnp.all(jnp.isfinite(step)))
+        trial = Trial(step, y_eval, r_eval, cost_eval, finite & (actual > 0), jnp.all(jnp.isfinite(step)), aux)
         return trial, _TrustRegionState(state.scale_inv, radius, alpha, ratio, actual)
 
     def terminate(self, y, lin, trial, state):

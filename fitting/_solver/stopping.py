@@ -1,5 +1,6 @@
-"""The loop's own stopping tests (`advance`: flat cost, stall, non-finite Jacobian; shared with `fit_fleet`), the
-outpacing of slow starts and one verdict per stopping code (`verdict_of`)."""
+"""The loop's own stopping tests (`advance`: flat cost, stall, non-finite Jacobian; one for `iterate` and
+`fit_fleet`) and the outpacing of slow starts (`outpaced`). A start's state is a `RESULTS` item (`running` until it
+stops)."""
 
 
 import equinox as eqx
@@ -7,15 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .outcomes import Verdict, result_message
+from .outcomes import RESULTS
 
 # ---------------------------------------------------------------------------------------------------- stopping
-
-# How a start stands after a step, as a traced int: running, or why it stopped. The solver's own test and the
-# loop's flat-cost test are two ways to converge with different reasons; `PADDING` marks a fleet's filler rows.
-# `OUTPACED`: a start of a multi-start batch stopped by `iterate` (`outpaced`).
-RUNNING, CONVERGED, CONVERGED_FLAT, STALLED, LINEAR_SOLVE_FAILED, NONFINITE, NONFINITE_INITIAL, PADDING, OUTPACED = (
-    range(9))
 
 # accepted steps over which `outpaced` measures a running start's rate of decrease
 OUTPACE_WINDOW = 10
@@ -27,15 +22,24 @@ class Bookkeeping(eqx.Module):
 
     accepted: Int[Array, ""]  # accepted steps
     since: Int[Array, ""]  # consecutive rejected trials
-    recent: Float[Array, " window_plus_1"]  # the last `window + 1` accepted costs, oldest first (the first repeated)
-    code: Int[Array, ""]  # `RUNNING` or why the start stopped
+    recent: Float[Array, " keep_plus_1"]  # the last accepted costs, oldest first (the initial one repeated)
+    result: RESULTS  # `running`, or why the start stopped
 
 
-def begin(cost, finite, window: int) -> Bookkeeping:
-    """The bookkeeping of a start whose linearisation at its initial point has `cost` (and is `finite`)."""
+def begin(cost, finite, window: int, keep: int = 0) -> Bookkeeping:
+    """The bookkeeping of a start whose linearisation at its initial point has `cost` (and is `finite`); it keeps
+    the last `max(window, keep) + 1` accepted costs."""
     zero = jnp.zeros((), jnp.int32)
-    code = jnp.where(jnp.isfinite(cost) & finite, RUNNING, NONFINITE_INITIAL).astype(jnp.int32)
-    return Bookkeeping(zero, zero, jnp.full((window + 1,), cost), code)
+    result = RESULTS.where(jnp.isfinite(cost) & finite, RESULTS.running, RESULTS.nonfinite_initial)
+    return Bookkeeping(zero, zero, jnp.full((max(window, keep) + 1,), cost), result)
+
+
+def _first(cases, default):
+    """The item of the first true condition of `cases` (`(condition, item)` pairs), else `default`."""
+    out = default
+    for condition, item in reversed(cases):
+        out = RESULTS.where(condition, item, out)
+    return out
 
 
 def advance(book: Bookkeeping, *, cost, take, ok, terminate, finite, ftol, window: int, max_rejections: int
@@ -44,27 +48,25 @@ def advance(book: Bookkeeping, *, cost, take, ok, terminate, finite, ftol, windo
     trial cost `cost`), `ok` whether the linear solve succeeded, `terminate` the solver's own test, `finite` whether
     the Jacobian at the new point is finite (`True` where not known yet).
 
-    The start ends, in this order: `LINEAR_SOLVE_FAILED`; `CONVERGED` (the solver's test); `CONVERGED_FLAT` when its
-    accepted steps no longer lower the cost (the mean relative decrease over the last `window` accepted steps below
-    `ftol`: parameters drifting along a flat valley); `NONFINITE` (the Jacobian at the accepted point); `STALLED`
-    after `max_rejections` consecutive rejected trials."""
-    active = book.code == RUNNING
+    The start ends, in this order: `linear_solve_failed`; `successful` (the solver's test); `successful_flat` when
+    its accepted steps no longer lower the cost (the mean relative decrease over the last `window` accepted steps
+    below `ftol`: parameters drifting along a flat valley); `nonfinite` (the Jacobian at the accepted point);
+    `stalled` after `max_rejections` consecutive rejected trials."""
+    active = book.result == RESULTS.running
     take = active & take
     accepted = book.accepted + take.astype(jnp.int32)
     recent = jnp.where(take, jnp.concatenate([book.recent[1:], jnp.asarray(cost, book.recent.dtype)[None]]),
                        book.recent)
     since = jnp.where(take, 0, book.since + active.astype(jnp.int32))
     ftol = jnp.asarray(ftol, recent.dtype)
-    flat = take & (accepted >= window) & (recent[0] - recent[-1] <= ftol * window * recent[-1])
-    code = jnp.select(
-        [~active, ~ok, terminate, flat, take & ~finite, ~take & (since >= max_rejections)],
-        [book.code, LINEAR_SOLVE_FAILED, CONVERGED, CONVERGED_FLAT, NONFINITE, STALLED],
-        RUNNING,
-    ).astype(jnp.int32)
-    return Bookkeeping(accepted, since, recent, code)
+    flat = take & (accepted >= window) & (recent[-1 - window] - recent[-1] <= ftol * window * recent[-1])
+    result = _first([(~active, book.result), (~ok, RESULTS.linear_solve_failed), (terminate, RESULTS.successful),
+                     (flat, RESULTS.successful_flat), (take & ~finite, RESULTS.nonfinite),
+                     (~take & (since >= max_rejections), RESULTS.stalled)], RESULTS.running)
+    return Bookkeeping(accepted, since, recent, result)
 
 
-def outpaced(histories, history_steps, codes, steps, step: int, max_steps: int, window: int = OUTPACE_WINDOW
+def outpaced(histories, history_steps, names, steps, step: int, max_steps: int, window: int = OUTPACE_WINDOW
              ) -> dict[int, str]:
     r"""The running starts of a multi-start batch that another has outpaced, each with the reason: a start has
     converged (the solver's test or the flat-cost one) after $k^*$ steps at a cost $c^*$ below this start's $c$;
@@ -75,9 +77,9 @@ def outpaced(histories, history_steps, codes, steps, step: int, max_steps: int, 
     on `experiments.plant_study`'s Bouc–Wen draw 8: one start converged after 117 steps, when the other was at 3.6
     times its cost and falling by 0.1 % a step; 40 steps later it was below it, and it converged 1.3 % lower), so
     every start gets twice the winner's steps first. `histories`, `history_steps`: each start's accepted costs and
-    the steps they were taken at (its initial cost at step 0); `codes`: the starts' bookkeeping codes after `step`;
-    `steps`: the step at which each start stopped (the current one for those running)."""
-    done = [j for j in range(len(codes)) if codes[j] in (CONVERGED, CONVERGED_FLAT)]
+    the steps they were taken at (its initial cost at step 0); `names`: the names of the starts' `RESULTS` after
+    `step`; `steps`: the step at which each start stopped (the current one for those running)."""
+    done = [j for j in range(len(names)) if names[j] in ("successful", "successful_flat")]
     if not done:
         return {}
     winner = min(done, key=lambda j: histories[j][-1])
@@ -85,7 +87,7 @@ def outpaced(histories, history_steps, codes, steps, step: int, max_steps: int, 
     if step < 2 * k_star or step >= max_steps:  # at the last step a running start ends `max_steps_reached` anyway
         return {}
     out = {}
-    for i in np.flatnonzero(np.asarray(codes) == RUNNING):
+    for i in np.flatnonzero(np.asarray(names) == "running"):
         h, hs = histories[i], history_steps[i]
         c = h[-1]
         if not c > target or len(h) <= window:
@@ -99,30 +101,3 @@ def outpaced(histories, history_steps, codes, steps, step: int, max_steps: int, 
                            "need " + (f"about {need:.0f} more steps" if np.isfinite(need) else "indefinitely many "
                                       "steps") + f" to reach it, more than the {left} left of max_steps = {max_steps}")
     return out
-
-
-def verdict_of(code: int, *, solver, window: int, since: int, max_steps: int, interrupted: bool = False,
-               stalled_note: str = "") -> Verdict:
-    """The `Verdict` of a start whose bookkeeping ended with `code` (`RUNNING`: it ran out of steps, or was
-    interrupted); `since` its consecutive rejected trials; `stalled_note` is appended to a stall's reason."""
-    if code == CONVERGED:
-        return Verdict("successful", solver.converged_reason)
-    if code == CONVERGED_FLAT:
-        return Verdict("successful", f"converged (mean relative cost decrease per accepted step over the last "
-                                     f"{window} below ftol = {float(solver.ftol):g})")
-    if code == STALLED:
-        return Verdict("stalled", f"no decrease of the cost in {since} consecutive trial steps (stalled or "
-                                  f"diverging{stalled_note})")
-    if code == NONFINITE:
-        return Verdict("nonfinite", "the Jacobian is not finite at an accepted point")
-    if code == NONFINITE_INITIAL:
-        return Verdict("nonfinite_initial", result_message("nonfinite_initial"))
-    if code == LINEAR_SOLVE_FAILED:
-        return Verdict("linear_solve_failed", result_message("linear_solve_failed"))
-    if code == RUNNING:
-        if interrupted:
-            return Verdict("interrupted", result_message("interrupted"))
-        return Verdict("max_steps_reached", f"max_steps = {max_steps} reached before convergence")
-    raise ValueError(f"no verdict for the bookkeeping code {code}")
-
-
