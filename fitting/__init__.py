@@ -4,7 +4,8 @@
   refinement rounds, hints) and returns a `Calibration` (`.result`, `.report()`, `.save(folder)`).
 - Data: `Experiment`, `Dataset`, `load_experiment`, `save_experiment` (CSV, NPZ, HDF5, MATLAB .mat).
 - Model configurations: `load_config`, `parse_config`, `ModelConfig`; the registry of block kinds a CONFIG can
-  name (`BlockKind`, `register_kind`, `ConfigTable`, `StartData`) and of whole-model kinds (`ModelKind`).
+  name (`BlockKind`, its typed options `KindOptions`, `HysteresisOptions`, `CreepOptions`, `register_kind`,
+  `ConfigTable`, `StartData`) and of whole-model kinds (`ModelKind`).
 - Problem: `Problem` (model, data, free parameters, channel weights, weighted residuals), `Predictor` and the
   built-in predictors.
 - Solver: `fit` / `solve` (optimistix's Levenberg–Marquardt, or `method="trust_region"`: scipy's TRF algorithm, in
@@ -31,8 +32,9 @@ from typing import TYPE_CHECKING
 _EXPORTS = {
     "._calibrate": ("Calibration", "calibrate"),
     "._config": (
-        "BlockKind", "ConfigTable", "ModelConfig", "ModelKind", "StartData", "StartWarning", "load_config",
-        "parse_config", "register_kind", "register_model_kind", "registered_kinds", "unregister_kind",
+        "BlockKind", "ConfigTable", "CreepOptions", "HysteresisOptions", "KindOptions", "ModelConfig", "ModelKind",
+        "StartData", "StartWarning", "load_config", "parse_config", "register_kind", "register_model_kind",
+        "registered_kinds", "unregister_kind",
     ),
     "._data": (
         "CHANNELS", "SUPPORTED_SUFFIXES", "UNITS", "Dataset", "Experiment", "load_experiment",
@@ -82,6 +84,9 @@ if TYPE_CHECKING:  # the same names for static analysis
     from ._config import (
         BlockKind as BlockKind,
         ConfigTable as ConfigTable,
+        CreepOptions as CreepOptions,
+        HysteresisOptions as HysteresisOptions,
+        KindOptions as KindOptions,
         ModelConfig as ModelConfig,
         ModelKind as ModelKind,
         StartData as StartData,

@@ -288,7 +288,8 @@ def report_hints(config, result) -> list[str]:
     if not result.success or worst is None or worst[2] != "displacement" or config.model_kind is not ACTUATOR:
         return hints
     creep = config.kind("creep")
-    if config.hysteresis_kind.empty or creep.empty or "structure" in config.creep_options or len(creep.structures) < 2:
+    given = config.creep_options.structure is not None
+    if config.hysteresis_kind.empty or creep.empty or given or len(creep.structures) < 2:
         return hints
     other = next(s for s in creep.structures if s != config.creep_structure)
     return [f"  the creep is in {config.creep_structure} with the hysteresis (the default); `structure = \"{other}\"` "

@@ -2,6 +2,7 @@
 built, constrained, fitted and saved like the built-in ones; the Preisach kind and dynamics with zeros."""
 
 import ast
+import dataclasses
 
 import equinox as eqx
 import jax
@@ -40,10 +41,15 @@ class WeightedPlay(pj.AbstractHysteresisCell):
 
 
 class WeightedPlayKind(fitting.BlockKind):
-    table, name, keys = "hysteresis", "weighted_play", ("weight", "threshold")
+    table, name = "hysteresis", "weighted_play"
+
+    @dataclasses.dataclass(frozen=True)
+    class Options(fitting.HysteresisOptions):  # its keys: the fields it adds (the table's: the output polynomial)
+        weight: float | None = None
+        threshold: float | None = None
 
     def parse(self, t, raw):
-        return {"weight": t.number("weight"), "threshold": t.number("threshold", positive=True)}
+        return self.Options(weight=t.number("weight"), threshold=t.number("threshold", positive=True))
 
     def parameters(self, o):
         return ("weight", "threshold")
@@ -106,6 +112,96 @@ def test_a_kind_registered_from_one_file_is_configured_started_fitted_and_saved(
     assert (tmp_path / "pred" / "metrics.json").is_file()
 
 
+def test_a_kind_is_abstract_until_it_defines_its_contract():
+    """What every kind must define is abstract: a kind that leaves a method, its table, name or options undefined
+    cannot be instantiated (nor so registered), and options that are not its table's dataclass are refused."""
+
+    class NoStart(fitting.BlockKind):
+        table, name, Options = "hysteresis", "no_start", fitting.HysteresisOptions
+
+        def parse(self, t, raw):
+            return self.Options()
+
+        def parameters(self, o):
+            return ()
+
+        def placeholder(self, o):
+            return {}
+
+        def build(self, o, v, config):
+            return None
+
+        def constraints(self, o):
+            return {}
+
+    with pytest.raises(TypeError, match="Can't instantiate abstract class NoStart .*start"):
+        NoStart()
+
+    class Unnamed(fitting.BlockKind):
+        def parse(self, t, raw):
+            return None
+
+        parameters = placeholder = start = build = constraints = parse
+
+    with pytest.raises(TypeError, match="without the class attribute\\(s\\) table, name, Options"):
+        Unnamed()
+
+    class LooseOptions(WeightedPlayKind):
+        class Options(fitting.HysteresisOptions):  # not decorated: not a dataclass of its own
+            weight: float | None = None
+
+    with pytest.raises(pj.PiezojaxValueError, match="`kind.Options` must be a frozen dataclass subclassing "
+                       "fitting.HysteresisOptions"):
+        fitting.register_kind(LooseOptions())
+
+    class WrongTable(WeightedPlayKind):
+        Options = fitting.CreepOptions
+
+    with pytest.raises(pj.PiezojaxValueError, match="subclassing fitting.HysteresisOptions"):
+        fitting.register_kind(WrongTable())
+
+    class NoModel(fitting.ModelKind):
+        name = "no_model"
+
+    with pytest.raises(TypeError, match="Can't instantiate abstract class NoModel .*build"):
+        NoModel()
+
+
+def test_options_are_typed_and_dict_access_warns_naming_the_attribute(weighted_play):
+    cfg = parse_config('[hysteresis]\nkind = "weighted_play"\nthreshold = 2.0\npolynomial = 2\n'
+                       '[creep]\nkind = "kelvin_voigt"\norder = 2\n', "wp.toml")
+    o = cfg.hysteresis_options
+    assert type(o) is WeightedPlayKind.Options and isinstance(o, fitting.HysteresisOptions)
+    assert (o.threshold, o.weight, o.polynomial, o.coefficients) == (2.0, None, 2, None)
+    assert WeightedPlayKind().keys == ("weight", "threshold")  # from the fields it adds
+    assert dataclasses.is_dataclass(cfg.creep_options) and cfg.creep_options.order == 2
+    assert cfg.creep_options.structure is None and cfg.creep_structure == "parallel"
+    pi = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 3\n', "pi.toml").hysteresis_options
+    assert isinstance(pi, fitting.KindOptions) and pi.plays == 3 and pi.w0 is None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        pi.plays = 4
+    # the deprecated dict-style access: the same values, each with a warning naming the attribute
+    with pytest.warns(DeprecationWarning, match=r"\['plays'\].*read the attribute `\.plays` instead"):
+        assert pi["plays"] == 3
+    with pytest.warns(DeprecationWarning, match=r"\.get\('w0'\).*`\.w0`"):
+        assert pi.get("w0") is None and pi.get("w0", 1.5) == 1.5
+    with pytest.warns(DeprecationWarning, match="`.threshold`"):
+        assert o["threshold"] == o.threshold
+    with pytest.warns(DeprecationWarning, match="`.polynomial`"):
+        assert o.get("polynomial", 0) == 2  # a common key of the table, as before
+    with pytest.warns(DeprecationWarning, match="`.structure`"):
+        assert "structure" not in cfg.creep_options  # not given
+    series = parse_config('[hysteresis]\nkind = "play"\n[creep]\nkind = "kelvin_voigt"\nstructure = "series"\n',
+                          "s.toml").creep_options
+    with pytest.warns(DeprecationWarning, match="`.structure`"):
+        assert "structure" in series
+    with pytest.warns(DeprecationWarning, match=r"read the attributes \(polynomial, .*plays"):
+        with pytest.raises(KeyError):
+            pi["order"]
+    with pytest.warns(DeprecationWarning):
+        assert pi.get("order", 7) == 7
+
+
 def test_registry_refuses_duplicates_and_foreign_objects(weighted_play):
     with pytest.raises(pj.PiezojaxValueError, match="already registered"):
         fitting.register_kind(WeightedPlayKind())
@@ -113,8 +209,8 @@ def test_registry_refuses_duplicates_and_foreign_objects(weighted_play):
     with pytest.raises(pj.PiezojaxValueError, match="fitting.BlockKind instance"):
         fitting.register_kind(object())
 
-    class Bad(fitting.BlockKind):
-        table, name = "sensor", "x"
+    class Bad(WeightedPlayKind):
+        table = "sensor"
 
     with pytest.raises(pj.PiezojaxValueError, match="`kind.table` must be one of hysteresis, creep, dynamics"):
         fitting.register_kind(Bad())

@@ -1,8 +1,8 @@
 """Model configurations in TOML: which blocks, their sizes, optional initial values, and the fit options.
 
 - `table.py`: one TOML table (`ConfigTable`), the size limits, `StartWarning`.
-- `kinds/`: what each kind a CONFIG can name declares (`BlockKind`, `ModelKind`) and the built-in kinds,
-  registered in `kinds/__init__.py`.
+- `kinds/`: what each kind a CONFIG can name declares (`BlockKind` with its typed options, `KindOptions`;
+  `ModelKind`) and the built-in kinds, registered in `kinds/__init__.py`.
 - `model_config.py`: `ModelConfig`, the validated configuration: the model it builds, its data-driven starts.
 - `parse.py`: `parse_config` and `load_config`.
 """
@@ -12,6 +12,9 @@ from .kinds import (
     BLOCK_TABLES as BLOCK_TABLES,
     DEFAULT_KIND as DEFAULT_KIND,
     BlockKind as BlockKind,
+    CreepOptions as CreepOptions,
+    HysteresisOptions as HysteresisOptions,
+    KindOptions as KindOptions,
     ModelKind as ModelKind,
     StartData as StartData,
     get_kind as get_kind,

@@ -26,6 +26,7 @@ from .._predict import predict
 from .._problem import matches
 from .kinds.base import BlockKind, StartData, get_kind
 from .kinds.models import ACTUATOR, ModelKind, get_model_kind
+from .kinds.options import CreepOptions, HysteresisOptions, KindOptions
 from .table import MAX_POLYNOMIAL, ConfigTable, StartWarning, f64
 
 TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "observer", "model", "data", "fit")
@@ -34,7 +35,6 @@ MODEL_TABLES = ("observer", "model")  # the tables naming a whole-model kind (no
 MAX_STEPS = 100_000
 MAX_LEVELS = 10
 MAX_WEIGHT = 1e20  # a channel weight beyond it squares past float64 with the residuals it scales
-_POLYNOMIAL_KEYS = ("polynomial", "coefficients", "polynomial_scale")
 _FIT_KEYS = ("free", "weights", "smoothing", "max_steps", "targets", "method")
 _DATA_KEYS = ("units", "columns", "group", "sample_rate", "ignore_extra")
 _WEIGHT_MODES = ("range", "noise")
@@ -42,7 +42,7 @@ _WEIGHT_MODES = ("range", "noise")
 
 
 def _parse_polynomial(t: ConfigTable) -> dict:
-    """The output polynomial's keys, common to every hysteresis kind."""
+    """The output polynomial's keys, common to every hysteresis kind (`HysteresisOptions`): the fields to set."""
     degree = t.integer("polynomial", 0, minimum=0, maximum=MAX_POLYNOMIAL)
     if degree == 1:
         raise t.error("the output polynomial's degree must be 0 (none) or 2 and above: degree 1 would duplicate "
@@ -80,7 +80,9 @@ class ModelConfig:
     - `source`: the file name used in error messages.
     - `hysteresis`, `creep`, `dynamics`: the kinds of the blocks (`"none"` for no block; the dynamics' default
       `"transfer_function"`, order 0 when the file has no `[dynamics]`), with their validated options in
-      `hysteresis_options`, `creep_options`, `dynamics_options` (see `fitting.BlockKind`).
+      `hysteresis_options`, `creep_options`, `dynamics_options`: each the kind's `Options` dataclass (see
+      `fitting.BlockKind`), holding the table's common keys too (`fitting.HysteresisOptions`: the output
+      polynomial; `fitting.CreepOptions`: the structure).
     - `model`: `"actuator"` (`pj.Actuator`) or the observer kind of `[observer]`; `model_options` its options
       (the actuator's: `charge`, the `[charge]` options or `None`; both: `state`, the `[state]` options).
     - `free`, `weights`, `smoothing`, `max_steps`, `targets`, `method`: the `[fit]` options (`free=None`: the default
@@ -92,11 +94,11 @@ class ModelConfig:
     text: str
     source: str
     hysteresis: str
-    hysteresis_options: dict
+    hysteresis_options: HysteresisOptions
     creep: str
-    creep_options: dict
+    creep_options: CreepOptions
     dynamics: str
-    dynamics_options: dict
+    dynamics_options: KindOptions
     model: str
     model_options: dict
     free: tuple[str, ...] | None
@@ -113,7 +115,8 @@ class ModelConfig:
         """The registered kind of a block table (`"hysteresis"`, `"creep"`, `"dynamics"`)."""
         return get_kind(table, getattr(self, table))
 
-    def options(self, table: str) -> dict:
+    def options(self, table: str) -> KindOptions:
+        """The options of a block table (`hysteresis_options`, ...)."""
         return getattr(self, f"{table}_options")
 
     @property
@@ -145,18 +148,20 @@ class ModelConfig:
 
     @property
     def dynamics_order(self) -> int:
-        return self.dynamics_options.get("order", 0)
+        """The order of the dynamics (0: none, or a dynamics kind without an order)."""
+        return getattr(self.dynamics_options, "order", 0)
 
     @property
     def polynomial(self) -> int:
         """The degree of the hysteresis' output polynomial (0: none)."""
-        return self.hysteresis_options.get("polynomial", 0)
+        return self.hysteresis_options.polynomial
 
     @property
     def creep_structure(self) -> str:
         """`"series"` (the creep after the hysteresis) or `"parallel"` (beside it, driven by the voltage): the
         file's `structure`, else the creep kind's default."""
-        return self.creep_options.get("structure", self.kind("creep").structures[0])
+        given = self.creep_options.structure
+        return self.kind("creep").structures[0] if given is None else given
 
     def block_path(self, table: str) -> str:
         """Where a block's parameters are: `hysteresis.hysteresis` for the operator inside an output polynomial."""
@@ -231,8 +236,8 @@ class ModelConfig:
         out = []
         for table in self.block_tables():
             o = self.options(table)
-            out += [f"[{table}] {k}" for k in self.kind(table).required(o) if o.get(k) is None]
-            if table == "hysteresis" and self.polynomial and o.get("coefficients") is None:
+            out += [f"[{table}] {k}" for k in self.kind(table).required(o) if getattr(o, k) is None]
+            if table == "hysteresis" and self.polynomial and self.hysteresis_options.coefficients is None:
                 out.append("[hysteresis] coefficients")
         out += self.model_kind.missing(self)
         return out + [k for k in self.data_derived() if k not in out]
@@ -264,12 +269,12 @@ class ModelConfig:
 
     def _derived(self) -> dict[str, tuple[str | None, str]]:
         out = {}
-        if self.polynomial and self.hysteresis_options.get("polynomial_scale") is None:
+        if self.polynomial and self.hysteresis_options.polynomial_scale is None:
             out["[hysteresis] polynomial_scale"] = (None, "polynomial_scale")
         for table in self.block_tables():
             o = self.options(table)
             for k in self.kind(table).data_derived(o, self):
-                if o.get(k) is None:
+                if getattr(o, k) is None:
                     out[f"[{table}] {k}"] = (table, k)
         return out
 
@@ -327,7 +332,7 @@ class ModelConfig:
             kind, o = self.kind(table), self.options(table)
             block = kind.build(o, kind.values(o, data), self)
             if table == "hysteresis" and block is not None and self.polynomial:
-                coefficients = o.get("coefficients")
+                coefficients = self.hysteresis_options.coefficients
                 coefficients = np.zeros(self.polynomial - 1) if coefficients is None else coefficients
                 block = pj.OutputPolynomial(block, f64(coefficients), f64(self._polynomial_scale(data)))
             blocks[table] = block
@@ -336,7 +341,7 @@ class ModelConfig:
     def _polynomial_scale(self, data: StartData | None) -> float:
         """The output polynomial's scale: explicit, else the largest deviation of the quasi-static output from its
         mean (so the coefficients are of order one), else 1."""
-        s = self.hysteresis_options.get("polynomial_scale")
+        s = self.hysteresis_options.polynomial_scale
         if s is not None:
             return s
         if data is None:

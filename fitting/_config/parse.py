@@ -1,5 +1,6 @@
 """Reading a CONFIG: `parse_config` (TOML text to a validated `ModelConfig`) and `load_config` (a file)."""
 
+import dataclasses
 import os
 import tomllib
 from collections.abc import Mapping
@@ -14,10 +15,10 @@ from .._data import CHANNELS, parse_columns, parse_units
 from .._problem import matches, parameter_paths
 from .kinds.base import DEFAULT_KIND, get_kind, registered_kinds
 from .kinds.models import ACTUATOR, get_model_kind, model_kinds
+from .kinds.options import common_keys
 from .model_config import (
     _DATA_KEYS,
     _FIT_KEYS,
-    _POLYNOMIAL_KEYS,
     _WEIGHT_MODES,
     MAX_LEVELS,
     MAX_STEPS,
@@ -56,7 +57,8 @@ def parse_config(text: str, source: str = "config") -> ModelConfig:
     kinds, opts = _parse_blocks(source, raw, mkind, model)
     h_kind = kinds["hysteresis"]
     model_options = mkind.parse(mt, raw, source)
-    if mkind.table is None and kinds["creep"] == "none" and h_kind == "none" and opts["dynamics"].get("order", 0) == 0:
+    no_dynamics = getattr(opts["dynamics"], "order", 0) == 0  # the order of a dynamics kind that has one
+    if mkind.table is None and kinds["creep"] == "none" and h_kind == "none" and no_dynamics:
         raise PiezojaxValueError(f"{source}: every block is 'none': the model has no parameters")
     blocks = dict(source=source, hysteresis=h_kind, hysteresis_options=opts["hysteresis"], creep=kinds["creep"],
                   creep_options=opts["creep"], dynamics=kinds["dynamics"], dynamics_options=opts["dynamics"],
@@ -114,26 +116,28 @@ def _model_kind(source: str, raw: dict):
 
 
 def _parse_blocks(source: str, raw: dict, mkind, model: str) -> tuple[dict, dict]:
-    """Each block table's kind and options, parsed by its kind (`kind = "none"` for a block the model lacks)."""
+    """Each block table's kind and options, parsed by its kind, with the table's common keys (`common_keys`) filled
+    in here (the default kind with its default options for a block the model lacks)."""
     kinds, opts = {}, {}
     for table in ("hysteresis", "creep", "dynamics"):
         if table not in mkind.blocks:  # a block the model does not have
             kinds[table] = DEFAULT_KIND[table]
-            opts[table] = {"order": 0, "zero_pairs": 0, "real_zeros": 0} if table == "dynamics" else {}
+            opts[table] = get_kind(table, DEFAULT_KIND[table]).Options()
             continue
         data = raw.get(table, {"kind": DEFAULT_KIND[table]} if table != "dynamics" else {"order": 0})
         if table == "dynamics" and isinstance(data, Mapping) and "kind" not in data:
             data = {**data, "kind": DEFAULT_KIND[table]}
         name = _kind(source, table, data, registered_kinds(table))
         kind = get_kind(table, name)
-        common = (_POLYNOMIAL_KEYS if not kind.empty else ()) if table == "hysteresis" else (
-            ("structure",) if table == "creep" and not kind.empty else ())
+        common = () if kind.empty else common_keys(table)
         t = ConfigTable(source, table, data, kind.keys + common, name)
         o = kind.parse(t, raw)
+        if not isinstance(o, kind.Options):
+            raise TypeError(f"the {table} kind {name!r}: `parse` must return its `Options`, got {type(o).__name__}")
         if table == "hysteresis" and not kind.empty:
-            o.update(_parse_polynomial(t))
+            o = dataclasses.replace(o, **_parse_polynomial(t))
         if table == "creep" and not kind.empty:
-            o.update(_creep_structure(t, kind, mkind, name))
+            o = dataclasses.replace(o, **_creep_structure(t, kind, mkind, name))
         kinds[table], opts[table] = name, o
     return kinds, opts
 

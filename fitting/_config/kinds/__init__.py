@@ -1,5 +1,6 @@
-"""The kinds a CONFIG can name: block kinds (`[hysteresis]`, `[creep]`, `[dynamics]` → `BlockKind`) and whole-model
-kinds (`[observer]`, `[model]` → `ModelKind`). The built-in kinds are registered here, in one place."""
+"""The kinds a CONFIG can name: block kinds (`[hysteresis]`, `[creep]`, `[dynamics]` → `BlockKind`, their options
+a `KindOptions` dataclass) and whole-model kinds (`[observer]`, `[model]` → `ModelKind`). The built-in kinds are
+registered here, in one place."""
 
 from .base import (
     BLOCK_TABLES as BLOCK_TABLES,
@@ -39,6 +40,11 @@ from .observers import (
     CurrentIntegrationObserver as CurrentIntegrationObserver,
     DynamicImpedanceKind as DynamicImpedanceKind,
     SensorLayerKind as SensorLayerKind,
+)
+from .options import (
+    CreepOptions as CreepOptions,
+    HysteresisOptions as HysteresisOptions,
+    KindOptions as KindOptions,
 )
 
 for _kind in (PrandtlIshlinskiiKind(), PlayKind(), BoucWenKind(), MaxwellSlipKind(), PreisachKind(), NoHysteresis(),

@@ -2,31 +2,41 @@
 block kinds.
 
 
-A kind is a `BlockKind` subclass registered with `register_kind`: the table it belongs to (`hysteresis`, `creep` or
-`dynamics`), its name (`kind = "..."` in that table), its keys and how they are validated (`parse`), its parameters
-and which of them a forward simulation needs (`parameters`, `required`), placeholder values (`placeholder`, enough
-to rebuild the structure of a fitted model), data-driven initial values (`start`), the block (`build`), the
-constraints its parameters are fitted under (`constraints`) and the parameters fitted by default (`default_free`).
-The generic configuration code (`fitting._config`) names no kind: it looks each one up here, so a new kind is one
-class in one file:
+A kind is a `BlockKind` subclass registered with `register_kind`. It must define (abstract): the table it belongs to
+(`hysteresis`, `creep` or `dynamics`), its name (`kind = "..."` in that table), its options (`Options`, a frozen
+dataclass of its keys, `kinds/options.py`) and how they are validated (`parse`), its parameters (`parameters`),
+placeholder values (`placeholder`, enough to rebuild the structure of a fitted model), data-driven initial values
+(`start`), the block (`build`) and the constraints its parameters are fitted under (`constraints`). Defaults cover
+the rest: which parameters a forward simulation needs (`required`: all), the parameters fitted by default
+(`default_free`: all), the relative cost (1), and the hooks to re-seed, swap or move elements (none). The generic
+configuration code (`fitting._config`) names no kind: it looks each one up here, so a new kind is one class in one
+file:
 
 ```python
-class WeightedPlay(fitting.BlockKind):          # a hysteresis kind: y = w P_r[v], for a user's own block class
-    table, name, keys = "hysteresis", "weighted_play", ("weight", "threshold")
+class WeightedPlayKind(fitting.BlockKind):      # a hysteresis kind: y = w P_r[v], for a user's own block class
+    table, name = "hysteresis", "weighted_play"
+
+    @dataclasses.dataclass(frozen=True)
+    class Options(fitting.HysteresisOptions):   # its keys (and the table's: the output polynomial)
+        weight: float | None = None
+        threshold: float | None = None
+
     def parse(self, t, raw):
-        return {"weight": t.number("weight"), "threshold": t.number("threshold", positive=True)}
+        return self.Options(weight=t.number("weight"), threshold=t.number("threshold", positive=True))
     def parameters(self, o): return ("weight", "threshold")
     def placeholder(self, o): return {"weight": 1.0, "threshold": 1.0}
     def start(self, o, data): return {"weight": data.static_gain(), "threshold": 0.1 * data.max_input()}
     def build(self, o, v, config): return MyWeightedPlay(v["weight"], v["threshold"])
     def constraints(self, o): return {"threshold": pj.Positive}
 
-fitting.register_kind(WeightedPlay())          # now `[hysteresis] kind = "weighted_play"` works
+fitting.register_kind(WeightedPlayKind())       # now `[hysteresis] kind = "weighted_play"` works
 ```
 
 The whole model (which blocks it has, its state and outputs) is a `ModelKind` (`kinds/models.py`).
 """
 
+import abc
+import dataclasses
 import warnings
 from collections.abc import Mapping
 from typing import ClassVar
@@ -41,6 +51,7 @@ from piezojax.internal import MAX_ROWS, row_subset
 
 from ..._initialise import cold_start_actuator
 from ..table import SURROGATE_PLAYS, ConfigTable, StartWarning, chord
+from .options import TABLE_OPTIONS, KindOptions, common_keys
 
 # ------------------------------------------------------------------------------------------------ starts
 
@@ -164,18 +175,33 @@ def _hysteresis_output(hysteresis, v):
 # ------------------------------------------------------------------------------------------------ block kinds
 
 
-class BlockKind:
+def check_class_attributes(cls: type, names: tuple[str, ...]) -> None:
+    """Refuse to instantiate `cls` while it leaves one of the abstract class attributes `names` undefined."""
+    missing = [n for n in names if not any(n in vars(k) for k in cls.__mro__)]
+    if missing:
+        raise TypeError(f"Can't instantiate abstract class {cls.__name__} without the class attribute(s) "
+                        f"{', '.join(missing)}")
+
+
+class BlockKind(abc.ABC):
     """One kind of model block a CONFIG table can name (`[hysteresis] kind = "prandtl_ishlinskii"`).
 
-    Subclasses set the class attributes and override the methods they need; `o` is the kind's options as `parse`
-    returned them, `v` the values of its parameters (explicit from the file, else from `start` or `placeholder`).
+    A concrete kind sets the abstract class attributes and defines the abstract methods; the other methods are
+    defaults that fit most kinds, and the hooks at the end act only for kinds that opt in. `o` is the kind's options
+    as `parse` returned them (an instance of `Options`), `v` the values of its parameters (explicit from the file,
+    else from `start` or `placeholder`).
 
-    **Class attributes:**
+    **Abstract class attributes:**
 
     - `table`: `"hysteresis"`, `"creep"` or `"dynamics"`.
     - `name`: the kind's name in the table.
-    - `keys`: the keys the kind accepts besides `kind` (and the table's common keys: the output polynomial's for
-      hysteresis, `structure` for creep).
+    - `Options`: the options' class, a frozen dataclass subclassing the table's (`fitting.HysteresisOptions`,
+      `fitting.CreepOptions`, else `fitting.KindOptions`), one field per key (a parameter not given: `None`).
+
+    **Class attributes with defaults:**
+
+    - `keys`: the keys the kind accepts besides `kind` and the table's common keys (the output polynomial's for
+      hysteresis, `structure` for creep): default, the fields `Options` adds to the table's.
     - `empty`: the kind is "no block" (`"none"`).
     - `structures`: creep only: the structures it may be used in (`"series"`, `"parallel"`), the first the default;
       `structure_note`: the error message for another structure (default: the allowed ones).
@@ -183,78 +209,119 @@ class BlockKind:
       given the rest of the model: the parameter that holds the gains (through `gains` / `from_gains`), so that
       `ModelConfig.relocated_lags` can move the lags after a fit; `max_total_gain`: a bound on the gains' sum (a
       lag creep's fractions stay below 1). `None` (default): the kind's lags are not moved.
+    - `element_parameters`: the parameters of the block's elements (for plays: weights and thresholds) that must
+      both be fitted for `ModelConfig.reseeded` to re-seed or swap them; `None` (default): it does neither.
     """
 
     table: ClassVar[str]
     name: ClassVar[str]
-    keys: ClassVar[tuple[str, ...]] = ()
+    Options: ClassVar[type[KindOptions]]
     empty: ClassVar[bool] = False
     structures: ClassVar[tuple[str, ...]] = ("parallel", "series")
     structure_note: ClassVar[str] = ""
     lag_gains: ClassVar[str | None] = None
     max_total_gain: ClassVar[float] = np.inf
+    element_parameters: ClassVar[tuple[str, str] | None] = None
 
-    def parse(self, t: ConfigTable, raw: Mapping) -> dict:
-        """The validated options of the table `t` (`raw`: the whole CONFIG, for keys that depend on other tables).
-        Parameter values the file does not give are `None` (or absent)."""
-        return {}
+    def __new__(cls, *args, **kwargs):
+        check_class_attributes(cls, ("table", "name", "Options"))
+        return super().__new__(cls)
 
-    def parameters(self, o: dict) -> tuple[str, ...]:
-        """The names of the block's parameters (keys of `o` when the file gives them)."""
-        return ()
+    @property
+    def keys(self) -> tuple[str, ...]:
+        """The fields `Options` adds to its table's options class (a kind may set `keys` instead)."""
+        common = common_keys(self.table)
+        return tuple(f.name for f in dataclasses.fields(self.Options) if f.name not in common)
 
-    def required(self, o: dict) -> tuple[str, ...]:
+    # -------------------------------------------------------------------------------------------- what every kind says
+
+    @abc.abstractmethod
+    def parse(self, t: ConfigTable, raw: Mapping) -> KindOptions:
+        """The validated options of the table `t` (`raw`: the whole CONFIG, for keys that depend on other tables),
+        an `Options`: parameter values the file does not give are `None`. The table's common keys are read by the
+        configuration, not here."""
+
+    @abc.abstractmethod
+    def parameters(self, o) -> tuple[str, ...]:
+        """The names of the block's parameters (fields of `o`, given by the file or `None`)."""
+
+    @abc.abstractmethod
+    def placeholder(self, o) -> dict:
+        """Values of the right shapes for every parameter, without data."""
+
+    @abc.abstractmethod
+    def start(self, o, data: StartData) -> dict:
+        """Data-driven initial values for every parameter (called when the file leaves some out)."""
+
+    @abc.abstractmethod
+    def build(self, o, v: dict, config) -> eqx.Module | None:
+        """The block (`None` for an empty kind)."""
+
+    @abc.abstractmethod
+    def constraints(self, o) -> dict[str, type]:
+        """Attribute of the block (a dotted path for a nested one, `"system.poles"`) → the `pj.AbstractReparam` it is
+        fitted under (e.g. `{"weights": pj.Positive}`; `{}`: none)."""
+
+    # -------------------------------------------------------------------------------------------- common defaults
+
+    def required(self, o) -> tuple[str, ...]:
         """The parameters a forward simulation needs from the file (default: all)."""
         return self.parameters(o)
 
-    def data_derived(self, o: dict, config) -> tuple[str, ...]:
+    def default_free(self, o, config) -> tuple[str, ...]:
+        """Attributes fitted when `[fit] free` is not given (default: every parameter)."""
+        return self.parameters(o)
+
+    def data_derived(self, o, config) -> tuple[str, ...]:
         """Values that a fit, when the file omits them, sets from its data and keeps fixed (a scale, a grid): a
         forward simulation needs them, and a fit reports them (`derived_value`; default: none)."""
         return ()
 
-    def derived_value(self, o: dict, key: str, block):
+    def derived_value(self, o, key: str, block):
         """The value of `key` (one of `data_derived`) in the built `block`, as the file would give it (default: the
         block's leaf of that name, a float)."""
         return float(np.asarray(getattr(block, key)))
 
-    def placeholder(self, o: dict) -> dict:
-        """Values of the right shapes for every parameter, without data."""
-        return {}
-
-    def start(self, o: dict, data: StartData) -> dict:
-        """Data-driven initial values for every parameter (called when the file leaves some out)."""
-        return self.placeholder(o)
-
-    def build(self, o: dict, v: dict, config) -> eqx.Module | None:
-        """The block (`None` for an empty kind)."""
-        return None
-
-    def constraints(self, o: dict) -> dict[str, type]:
-        """Attribute of the block (a dotted path for a nested one, `"system.poles"`) → the `pj.AbstractReparam` it is
-        fitted under (e.g. `{"weights": pj.Positive}`)."""
-        return {}
-
-    def default_free(self, o: dict, config) -> tuple[str, ...]:
-        """Attributes fitted when `[fit] free` is not given (default: every parameter)."""
-        return self.parameters(o)
-
-    def cold_start_args(self, o: dict, config) -> dict | None:
-        """Arguments of `fitting.cold_start_actuator` when this block is in its family (PI hysteresis — another
-        hysteresis kind gets a PI surrogate —, Kelvin–Voigt creep in series or parallel, lag creep, none, even-order
-        all-pole dynamics), else `None`."""
-        return None
-
-    def from_cold_start(self, o: dict, block) -> dict | None:
-        """The parameter values in the cold start's block (`None`: use `start`'s rules)."""
-        return None
-
-    def cost(self, o: dict) -> int:
-        """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate."""
+    def cost(self, o) -> int:
+        """Relative cost per sample (the Bouc–Wen RK4 substeps), for the fit's memory estimate (default: 1)."""
         return 1
 
-    element_parameters: tuple[str, str] | None = None
-    """The parameters of the block's elements (for plays: weights and thresholds) that must both be fitted for
-    `ModelConfig.reseeded` to re-seed or swap them; `None`: it does neither."""
+    def optional_start(self, o, data: StartData) -> dict:
+        """Values for the parameters a forward simulation does not need, when only those are missing (default:
+        `start`; kinds whose `start` needs more data than these override it)."""
+        return self.start(o, data)
+
+    def values(self, o, data: StartData | None) -> dict:
+        """Explicit values where the file gives them, the rest from the cold start, `start` (`optional_start` when
+        only optional parameters are missing) or `placeholder` (no data)."""
+        names = self.parameters(o)
+        out = {k: getattr(o, k) for k in names}
+        if any(x is None for x in out.values()):
+            made = None
+            if data is None:
+                made = self.placeholder(o)
+            elif all(getattr(o, k) is not None for k in self.required(o)):
+                made = self.optional_start(o, data)
+            else:
+                cold = data.cold_start()
+                if cold is not None:
+                    made = self.from_cold_start(o, getattr(cold, self.table))
+                if made is None:
+                    made = self._safe_start(o, data.for_table(self.table))
+            out = {k: (made[k] if out[k] is None else out[k]) for k in names}
+        return out
+
+    # -------------------------------------------------------------------------------------------- optional hooks
+
+    def cold_start_args(self, o, config) -> dict | None:
+        """Arguments of `fitting.cold_start_actuator` when this block is in its family (PI hysteresis — another
+        hysteresis kind gets a PI surrogate —, Kelvin–Voigt creep in series or parallel, lag creep, none, even-order
+        all-pole dynamics), else `None` (default)."""
+        return None
+
+    def from_cold_start(self, o, block) -> dict | None:
+        """The parameter values in the cold start's block (`None`, default: use `start`'s rules)."""
+        return None
 
     def swap_form(self, block):
         r"""The block's elements as `(weights, thresholds, stops)`: a sum of weighted plays $\sum_i w_i P_{r_i}$
@@ -264,10 +331,10 @@ class BlockKind:
         return None
 
     def from_swap_form(self, block, weights, thresholds):
-        """`block` with the elements `(weights, thresholds)` of `swap_form`."""
-        raise NotImplementedError
+        """`block` with the elements `(weights, thresholds)` of `swap_form` (for a kind that defines `swap_form`)."""
+        raise NotImplementedError(f"the {self.table} kind {self.name!r} has no `swap_form`")
 
-    def reseed(self, o: dict, block, max_input: float, place=None):
+    def reseed(self, o, block, max_input: float, place=None):
         """After a fit: `block` with its dead elements (that the fit left with no effect) moved to where they can
         act, or `None` when none is dead or the kind does not re-seed (default). `place`: see `_reseed_plays`.
         `ModelConfig.reseeded` calls it only for a kind that names its `element_parameters`."""
@@ -282,33 +349,7 @@ class BlockKind:
         """The values of the parameter `lag_gains` for the gains $c_j$ (the inverse of `gains`); elementwise."""
         return gains
 
-    def optional_start(self, o: dict, data: StartData) -> dict:
-        """Values for the parameters a forward simulation does not need, when only those are missing (default:
-        `start`; kinds whose `start` needs more data than these override it)."""
-        return self.start(o, data)
-
-    def values(self, o: dict, data: StartData | None) -> dict:
-        """Explicit values where the file gives them, the rest from the cold start, `start` (`optional_start` when
-        only optional parameters are missing) or `placeholder` (no data)."""
-        names = self.parameters(o)
-        out = {k: o.get(k) for k in names}
-        if any(x is None for x in out.values()):
-            made = None
-            if data is None:
-                made = self.placeholder(o)
-            elif all(o.get(k) is not None for k in self.required(o)):
-                made = self.optional_start(o, data)
-            else:
-                cold = data.cold_start()
-                if cold is not None:
-                    made = self.from_cold_start(o, getattr(cold, self.table))
-                if made is None:
-                    made = self._safe_start(o, data.for_table(self.table))
-            out = {k: (made[k] if out[k] is None else out[k]) for k in names}
-        return out
-
-
-    def _safe_start(self, o: dict, data: StartData) -> dict:
+    def _safe_start(self, o, data: StartData) -> dict:
         """`start`, or, when it fails on usable data, the placeholder values with a `StartWarning` (a start must not
         end the run: the fit may still get there)."""
         data.records()  # unusable data (no displacement, zero voltage) is the user's error, raised as such
@@ -345,6 +386,11 @@ def register_kind(kind: BlockKind, *, replace: bool = False) -> BlockKind:
         raise PiezojaxValueError(f"`kind.table` must be one of {', '.join(BLOCK_TABLES)}, got {kind.table!r}")
     if not isinstance(kind.name, str) or not kind.name:
         raise PiezojaxValueError(f"`kind.name` must be a non-empty string, got {kind.name!r}")
+    base = TABLE_OPTIONS[kind.table]
+    if not (isinstance(kind.Options, type) and issubclass(kind.Options, base)
+            and "__dataclass_fields__" in vars(kind.Options)):
+        raise PiezojaxValueError(f"`kind.Options` must be a frozen dataclass subclassing fitting.{base.__name__} "
+                                 f"(decorated with @dataclasses.dataclass(frozen=True)), got {kind.Options!r}")
     if (kind.table, kind.name) in _KINDS and not replace:
         raise PiezojaxValueError(f"a {kind.table} kind named {kind.name!r} is already registered "
                                  "(pass replace=True to replace it)")
@@ -366,8 +412,25 @@ def get_kind(table: str, name: str) -> BlockKind:
     return _KINDS[table, name]
 
 
-# ---- hysteresis
-
-
 class _NoBlock(BlockKind):
+    """No block (`kind = "none"`): no keys of its own, no parameters; `Options`: the table's options class."""
+
     empty = True
+
+    def parse(self, t, raw):
+        return self.Options()
+
+    def parameters(self, o):
+        return ()
+
+    def placeholder(self, o):
+        return {}
+
+    def start(self, o, data):
+        return {}
+
+    def build(self, o, v, config):
+        return None
+
+    def constraints(self, o):
+        return {}

@@ -1,5 +1,6 @@
 """The creep kinds: Kelvin–Voigt, logarithmic, lag, linear and none."""
 
+import dataclasses
 from collections.abc import Mapping
 
 import numpy as np
@@ -8,10 +9,11 @@ import piezojax as pj
 
 from ..table import MAX_CREEP_ORDER, TINY, Negative, f64
 from .base import BlockKind, StartData, _NoBlock
+from .options import CreepOptions
 
 
 class NoCreep(_NoBlock):
-    table, name = "creep", "none"
+    table, name, Options = "creep", "none", CreepOptions
 
     def cold_start_args(self, o, config):
         return {"creep_order": 0}
@@ -29,8 +31,13 @@ class KelvinVoigtKind(BlockKind):
     compliance 1 (`k0 = 1`), in parallel without."""
 
     table, name = "creep", "kelvin_voigt"
-    keys = ("order", "stiffnesses", "time_constants")
     lag_gains = "stiffnesses"  # the compliances 1/k_j are the gains
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(CreepOptions):
+        order: int
+        stiffnesses: np.ndarray | None = None
+        time_constants: np.ndarray | None = None
 
     def gains(self, values):
         return 1.0 / values
@@ -41,17 +48,17 @@ class KelvinVoigtKind(BlockKind):
     def parse(self, t, raw):
         n, (k, tau) = t.sized_vectors("order", 1, MAX_CREEP_ORDER, {"stiffnesses": dict(positive=True),
                                                                   "time_constants": dict(positive=True)})
-        return {"order": n, "stiffnesses": k, "time_constants": tau}
+        return self.Options(order=n, stiffnesses=k, time_constants=tau)
 
     def parameters(self, o):
         return ("stiffnesses", "time_constants")
 
     def placeholder(self, o):
-        n = o["order"]
+        n = o.order
         return {"stiffnesses": np.full(n, 10.0), "time_constants": np.geomspace(1.0, 10.0, n)}
 
     def start(self, o, data):
-        n, dt, span = o["order"], data.dt(), data.span()
+        n, dt, span = o.order, data.dt(), data.span()
         # one lag at a tenth of the longest record, or n lags from 1/100 to 1/3 of it; each at 1 % of the gain
         taus = np.array([span / 10]) if n == 1 else np.geomspace(span / 100, span / 3, n)
         gain = abs(_creep_gain(data))
@@ -65,7 +72,7 @@ class KelvinVoigtKind(BlockKind):
         return {"stiffnesses": pj.Positive, "time_constants": pj.Positive}
 
     def cold_start_args(self, o, config):
-        return {"creep_order": o["order"], "structure": config.creep_structure}
+        return {"creep_order": o.order, "structure": config.creep_structure}
 
     def from_cold_start(self, o, block):
         if block is None:
@@ -78,11 +85,16 @@ class LogarithmicKind(BlockKind):
     with the hysteresis)."""
 
     table, name = "creep", "logarithmic"
-    keys = ("gamma", "t0", "gain")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(CreepOptions):
+        gamma: float | None = None
+        t0: float | None = None
+        gain: float | None = None
 
     def parse(self, t, raw):
-        return {"gamma": t.number("gamma", None), "t0": t.number("t0", None, positive=True),
-                "gain": t.number("gain", None)}
+        return self.Options(gamma=t.number("gamma", None), t0=t.number("t0", None, positive=True),
+                            gain=t.number("gain", None))
 
     def parameters(self, o):
         return ("gamma", "t0", "gain")
@@ -120,11 +132,16 @@ class LagKind(BlockKind):
     """`pj.LagCreep`: `lags` (≤ 10), `fractions` (sum < 1), `time_constants`; DC gain 1, so only in series."""
 
     table, name = "creep", "lag"
-    keys = ("lags", "fractions", "time_constants")
     lag_gains, max_total_gain = "fractions", 1.0
     structures = ("series",)
     structure_note = ("a 'lag' creep is DC-normalised (its gain is 1): it belongs in series after the hysteresis; "
                       "use 'kelvin_voigt' for creep in parallel")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(CreepOptions):
+        lags: int
+        fractions: np.ndarray | None = None
+        time_constants: np.ndarray | None = None
 
     def parse(self, t, raw):
         n, (alpha, tau) = t.sized_vectors("lags", 1, MAX_CREEP_ORDER, {"fractions": dict(positive=True),
@@ -132,17 +149,17 @@ class LagKind(BlockKind):
         if alpha is not None and sum(alpha) >= 1:
             raise t.error(f"the fractions must add up to less than 1 (the rest responds at once), got {sum(alpha)}",
                           "fractions")
-        return {"lags": n, "fractions": alpha, "time_constants": tau}
+        return self.Options(lags=n, fractions=alpha, time_constants=tau)
 
     def parameters(self, o):
         return ("fractions", "time_constants")
 
     def placeholder(self, o):
-        n = o["lags"]
+        n = o.lags
         return {"fractions": np.full(n, 0.1 / n), "time_constants": np.geomspace(1e-2, 1.0, n)}
 
     def start(self, o, data):
-        n, lo = o["lags"], 50 * data.dt()
+        n, lo = o.lags, 50 * data.dt()
         # 20 % of the response lagging, split evenly; lags from 50 samples to a tenth of the longest record
         taus = np.array([lo]) if n == 1 else np.geomspace(lo, max(data.span() / 10, 2 * lo), n)
         return {"fractions": np.full(n, 0.2 / n), "time_constants": taus}
@@ -151,7 +168,7 @@ class LagKind(BlockKind):
         return pj.LagCreep(f64(v["fractions"]), f64(v["time_constants"]))
 
     def cold_start_args(self, o, config):
-        return {"creep_order": o["lags"], "structure": "series", "creep": "lag"}
+        return {"creep_order": o.lags, "structure": "series", "creep": "lag"}
 
     def from_cold_start(self, o, block):
         if block is None:
@@ -171,7 +188,14 @@ class LinearCreepKind(BlockKind):
     c_i/(1 + \tau_i s)$, plus 1 in series): poles $-1/\tau_i$, the zeros of the numerator (real, between them)."""
 
     table, name = "creep", "linear"
-    keys = ("order", "poles", "real_zeros", "zeros", "gain")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(CreepOptions):
+        order: int
+        poles: np.ndarray | None = None
+        real_zeros: int
+        zeros: np.ndarray | None = None
+        gain: float | None = None
 
     def parse(self, t, raw):
         n, (p,) = t.sized_vectors("order", 1, MAX_CREEP_ORDER, {"poles": dict(negative=True)})
@@ -181,13 +205,13 @@ class LinearCreepKind(BlockKind):
         if series and m != n:
             raise t.error(f"a creep in series responds at once: it needs as many zeros as poles ({n}), got {m}",
                           "real_zeros" if t.has("real_zeros") else "zeros")
-        return {"order": n, "poles": p, "real_zeros": m, "zeros": z, "gain": t.number("gain", None, nonzero=True)}
+        return self.Options(order=n, poles=p, real_zeros=m, zeros=z, gain=t.number("gain", None, nonzero=True))
 
     def parameters(self, o):
-        return ("poles",) + (("zeros",) if o["real_zeros"] else ()) + ("gain",)
+        return ("poles",) + (("zeros",) if o.real_zeros else ()) + ("gain",)
 
     def placeholder(self, o):
-        n, m = o["order"], o["real_zeros"]
+        n, m = o.order, o.real_zeros
         return {"poles": -np.geomspace(1.0, 10.0, n), "zeros": -1.5 * np.geomspace(1.0, 10.0, n)[:m], "gain": 1.0}
 
     def _from_lags(self, o, c: np.ndarray, tau: np.ndarray, series: bool) -> dict:
@@ -204,14 +228,14 @@ class LinearCreepKind(BlockKind):
                     term = term * d
             num = num + term
         zeros = np.sort(np.real(np.roots(num.coeffs)))[::-1] if num.order > 0 else np.zeros(0)
-        zeros = np.minimum(zeros, -1e-12)[: o["real_zeros"]]
-        m = o["real_zeros"]
+        zeros = np.minimum(zeros, -1e-12)[: o.real_zeros]
+        m = o.real_zeros
         if zeros.size < m:  # more zeros asked than the lags have (a parallel creep with fewer lags' worth)
             zeros = np.r_[zeros, -1.5 / tau[: m - zeros.size]]
         return {"poles": -1.0 / tau, "zeros": zeros, "gain": float(series) + float(np.sum(c))}
 
     def start(self, o, data):
-        kv = KelvinVoigtKind().start({"order": o["order"]}, data)
+        kv = KelvinVoigtKind().start(KelvinVoigtKind.Options(order=o.order), data)
         series = data.config.creep_structure == "series"
         return self._from_lags(o, 1.0 / kv["stiffnesses"], kv["time_constants"], series)
 
@@ -225,18 +249,18 @@ class LinearCreepKind(BlockKind):
         return out
 
     def constraints(self, o):
-        return {"system.poles": Negative} | ({"system.zeros": Negative} if o["real_zeros"] else {})
+        return {"system.poles": Negative} | ({"system.zeros": Negative} if o.real_zeros else {})
 
     def default_free(self, o, config):
         series = config.creep_structure == "series"
-        return ("system.poles",) + (("system.zeros",) if o["real_zeros"] else ()) + (
+        return ("system.poles",) + (("system.zeros",) if o.real_zeros else ()) + (
             () if series else ("system.gain",))
 
     def cold_start_args(self, o, config):
-        default = o["order"] if config.creep_structure == "series" else o["order"] - 1
-        if o["real_zeros"] != default:
+        default = o.order if config.creep_structure == "series" else o.order - 1
+        if o.real_zeros != default:
             return None
-        return {"creep_order": o["order"], "structure": config.creep_structure}
+        return {"creep_order": o.order, "structure": config.creep_structure}
 
     def from_cold_start(self, o, block):
         if block is None:

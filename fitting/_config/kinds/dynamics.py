@@ -1,5 +1,6 @@
 """The dynamics kind: a stable transfer function of configurable order, with zeros."""
 
+import dataclasses
 
 import numpy as np
 
@@ -7,6 +8,7 @@ import piezojax as pj
 
 from ..table import DYNAMICS_ORDERS, Negative, f64
 from .base import BlockKind
+from .options import KindOptions
 
 
 class TransferFunctionKind(BlockKind):
@@ -18,7 +20,21 @@ class TransferFunctionKind(BlockKind):
     spread from 1.25 to 5 times the fastest pole (distinct, so that they can part)."""
 
     table, name = "dynamics", "transfer_function"
-    keys = ("order", "gain", "omega", "zeta", "poles", "zero_pairs", "zero_omega", "zero_zeta", "real_zeros", "zeros")
+
+    @dataclasses.dataclass(frozen=True)
+    class Options(KindOptions):
+        """Every field has a default: `Options()` is a model without dynamics (order 0)."""
+
+        order: int = 0
+        gain: float | None = None
+        omega: np.ndarray | None = None
+        zeta: np.ndarray | None = None
+        poles: np.ndarray | None = None
+        zero_pairs: int = 0
+        zero_omega: np.ndarray | None = None
+        zero_zeta: np.ndarray | None = None
+        real_zeros: int = 0
+        zeros: np.ndarray | None = None
 
     def parse(self, t, raw):
         order = t.integer("order", None, allowed=DYNAMICS_ORDERS)
@@ -31,15 +47,15 @@ class TransferFunctionKind(BlockKind):
         m2, (zw, zz) = t.sized_vectors("zero_pairs", 0, n2, {"zero_omega": dict(positive=True), "zero_zeta": {}},
                                        minimum=0)
         m1, (z,) = t.sized_vectors("real_zeros", 0, n1 + 2 * (n2 - m2), {"zeros": {}}, minimum=0)
-        return {"order": order, "gain": t.number("gain", None, nonzero=True),
-                "omega": t.vector("omega", n2, positive=True), "zeta": t.vector("zeta", n2, positive=True),
-                "poles": t.vector("poles", n1, negative=True), "zero_pairs": m2, "zero_omega": zw, "zero_zeta": zz,
-                "real_zeros": m1, "zeros": z}
+        return self.Options(order=order, gain=t.number("gain", None, nonzero=True),
+                            omega=t.vector("omega", n2, positive=True), zeta=t.vector("zeta", n2, positive=True),
+                            poles=t.vector("poles", n1, negative=True), zero_pairs=m2, zero_omega=zw, zero_zeta=zz,
+                            real_zeros=m1, zeros=z)
 
     def parameters(self, o):
-        n2, n1 = divmod(o["order"], 2)
+        n2, n1 = divmod(o.order, 2)
         return (("omega", "zeta") if n2 else ()) + (("poles",) if n1 else ()) + (
-            ("zero_omega", "zero_zeta") if o["zero_pairs"] else ()) + (("zeros",) if o["real_zeros"] else ()) + (
+            ("zero_omega", "zero_zeta") if o.zero_pairs else ()) + (("zeros",) if o.real_zeros else ()) + (
             "gain",)
 
     def required(self, o):
@@ -50,7 +66,7 @@ class TransferFunctionKind(BlockKind):
         return ("gain",) if config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics else ()
 
     def _zeros(self, o, omega, zeta, poles) -> dict:
-        m2, m1 = o["zero_pairs"], o["real_zeros"]
+        m2, m1 = o.zero_pairs, o.real_zeros
         # real zeros at 1.25 times the real poles, then spread (distinct, so that they can part) above the pairs
         near = 1.25 * np.asarray(poles)[:m1]
         top = max([1.0] + [abs(float(x)) for x in np.r_[np.asarray(poles), np.asarray(omega)]])
@@ -59,13 +75,13 @@ class TransferFunctionKind(BlockKind):
                 "zeros": np.concatenate([near, extra])}
 
     def placeholder(self, o):
-        n2, n1 = divmod(o["order"], 2)
+        n2, n1 = divmod(o.order, 2)
         out = {"omega": np.geomspace(1e3, 1e4, n2) if n2 else np.zeros(0), "zeta": np.full(n2, 0.5),
                "poles": np.full(n1, -1e3), "gain": 1.0}
         return out | self._zeros(o, _given(o, "omega", out), _given(o, "zeta", out), _given(o, "poles", out))
 
     def start(self, o, data):
-        n2, n1 = divmod(o["order"], 2)
+        n2, n1 = divmod(o.order, 2)
         # rule of thumb: modes at 1/10 (and 1/4, ...) of the sampling rate, damping 0.5, real poles at 1/10
         nyquist = 0.5 / data.dt()
         fractions = np.geomspace(0.2, 0.8, n2) if n2 > 2 else np.array([0.2, 0.5])[:n2]
@@ -89,16 +105,16 @@ class TransferFunctionKind(BlockKind):
         return out
 
     def build(self, o, v, config):
-        if not o["order"] and not (config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics):
+        if not o.order and not (config.hysteresis_kind.empty and config.model_kind.scale_in_dynamics):
             return None  # without hysteresis the dynamics' DC gain is the only scale from volts to metres
         return pj.StableTransferFunction(f64(v["gain"]), omega=f64(v["omega"]), zeta=f64(v["zeta"]),
                                          poles=f64(v["poles"]), zeros=f64(v["zeros"]),
                                          zero_omega=f64(v["zero_omega"]), zero_zeta=f64(v["zero_zeta"]))
 
     def constraints(self, o):
-        n2, n1 = divmod(o["order"], 2)
+        n2, n1 = divmod(o.order, 2)
         return ({"omega": pj.Positive, "zeta": pj.Positive} if n2 else {}) | ({"poles": Negative} if n1 else {}) | (
-            {"zero_omega": pj.Positive} if o["zero_pairs"] else {})
+            {"zero_omega": pj.Positive} if o.zero_pairs else {})
 
     def default_free(self, o, config):
         # the DC gain duplicates the scale of the hysteresis; it is the scale when there is no hysteresis
@@ -106,10 +122,11 @@ class TransferFunctionKind(BlockKind):
         return (("gain",) if scale else ()) + tuple(p for p in self.parameters(o) if p != "gain")
 
     def cold_start_args(self, o, config):
-        if o["order"] % 2 or o["zero_pairs"] or o["real_zeros"]:
+        if o.order % 2 or o.zero_pairs or o.real_zeros:
             return None
-        return {"dynamics_order": o["order"]}
+        return {"dynamics_order": o.order}
 
 
-def _given(o: dict, key: str, made: dict) -> np.ndarray:
-    return np.asarray(made[key] if o.get(key) is None else o[key])
+def _given(o: KindOptions, key: str, made: dict) -> np.ndarray:
+    value = getattr(o, key)
+    return np.asarray(made[key] if value is None else value)

@@ -1,5 +1,6 @@
 """The hysteresis kinds: PI, play, Bouc–Wen, Maxwell slip, Preisach and none."""
 
+import dataclasses
 from collections.abc import Mapping
 
 import equinox as eqx
@@ -22,10 +23,11 @@ from ..table import (
     finite_number,
 )
 from .base import BlockKind, _NoBlock
+from .options import HysteresisOptions
 
 
 class NoHysteresis(_NoBlock):
-    table, name = "hysteresis", "none"
+    table, name, Options = "hysteresis", "none", HysteresisOptions
 
 
 class _PlaySum(BlockKind):
@@ -59,24 +61,31 @@ class PrandtlIshlinskiiKind(_PlaySum):
     `fitting.cold_start_actuator` in its family, else `pj.pi_cold_start` on the quasi-static output."""
 
     table, name = "hysteresis", "prandtl_ishlinskii"
-    keys = ("plays", "smoothing", "weights", "thresholds", "w0")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(HysteresisOptions):
+        plays: int
+        smoothing: float
+        weights: np.ndarray | None = None
+        thresholds: np.ndarray | None = None
+        w0: float | None = None
 
     def parse(self, t, raw):
         n, (w, r) = t.sized_vectors("plays", 10, MAX_PLAYS, {"weights": dict(positive=True),
                                                           "thresholds": dict(positive=True, ascending=True)})
-        return {"smoothing": t.number("smoothing", 0.0, nonnegative=True), "plays": n, "weights": w,
-                "thresholds": r, "w0": t.number("w0", None, positive=True)}
+        return self.Options(smoothing=t.number("smoothing", 0.0, nonnegative=True), plays=n, weights=w,
+                            thresholds=r, w0=t.number("w0", None, positive=True))
 
     def parameters(self, o):
         return ("weights", "thresholds", "w0")
 
     def placeholder(self, o):
-        n = o["plays"]
+        n = o.plays
         return {"weights": np.full(n, 0.1), "thresholds": np.arange(1.0, n + 1), "w0": 1.0}
 
     def start(self, o, data):
         recs = data.records()
-        pi = pj.pi_cold_start([v for v, _, _ in recs], [y for _, y, _ in recs], o["plays"])
+        pi = pj.pi_cold_start([v for v, _, _ in recs], [y for _, y, _ in recs], o.plays)
         w = np.asarray(pi.weights)
         top = max(float(np.max(np.abs(np.r_[w, float(pi.w0)]))), TINY)
         # dead plays revived at 1e-3 of the largest weight: a zero weight is a flat spot of the Positive map
@@ -85,13 +94,13 @@ class PrandtlIshlinskiiKind(_PlaySum):
 
     def build(self, o, v, config):
         return pj.PrandtlIshlinskii(f64(v["weights"]), f64(v["thresholds"]), w0=f64(v["w0"]),
-                                    smoothing=f64(o["smoothing"]))
+                                    smoothing=f64(o.smoothing))
 
     def constraints(self, o):
         return {"weights": pj.Positive, "w0": pj.Positive, "thresholds": pj.OrderedPositive}
 
     def cold_start_args(self, o, config):
-        return {"n_plays": o["plays"]}
+        return {"n_plays": o.plays}
 
     def from_cold_start(self, o, block):
         return {"weights": np.asarray(block.weights), "thresholds": np.asarray(block.thresholds),
@@ -105,25 +114,31 @@ class PlayKind(_PlaySum):
     scale $c$ the best of 0.02 to 0.9."""
 
     table, name = "hysteresis", "play"
-    keys = ("plays", "smoothing", "weights", "thresholds")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(HysteresisOptions):
+        plays: int
+        smoothing: float
+        weights: np.ndarray | None = None
+        thresholds: np.ndarray | None = None
 
     def parse(self, t, raw):
         n, (w, r) = t.sized_vectors("plays", 1, MAX_PLAYS, {"weights": dict(positive=True),
                                                          "thresholds": dict(positive=True, ascending=True)})
-        return {"smoothing": t.number("smoothing", 0.0, nonnegative=True), "plays": n, "weights": w,
-                "thresholds": r}
+        return self.Options(smoothing=t.number("smoothing", 0.0, nonnegative=True), plays=n, weights=w,
+                            thresholds=r)
 
     def parameters(self, o):
         return ("weights", "thresholds")
 
     def placeholder(self, o):
-        n = o["plays"]
+        n = o.plays
         return {"weights": np.full(n, 0.1), "thresholds": np.arange(1.0, n + 1)}
 
     def start(self, o, data):
         import scipy.optimize
 
-        n, recs = o["plays"], data.records()
+        n, recs = o.plays, data.records()
         y = data.sampled_outputs()
         sign = 1.0 if data.static_gain() >= 0 else -1.0
         best = None
@@ -141,7 +156,7 @@ class PlayKind(_PlaySum):
 
     def build(self, o, v, config):
         return pj.PrandtlIshlinskii(f64(v["weights"]), f64(v["thresholds"]), w0=f64(0.0),
-                                    smoothing=f64(o["smoothing"]))
+                                    smoothing=f64(o.smoothing))
 
     def constraints(self, o):
         return {"weights": pj.Positive, "thresholds": pj.OrderedPositive}
@@ -201,24 +216,35 @@ class BoucWenKind(BlockKind):
     """`pj.BoucWen`: `A`, `beta`, `gamma`, `n`, `d`, `method`, `substeps`, `smoothing`."""
 
     table, name = "hysteresis", "bouc_wen"
-    keys = ("smoothing", "A", "beta", "gamma", "n", "d", "method", "substeps")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(HysteresisOptions):
+        smoothing: float
+        A: float | None = None
+        beta: float | None = None
+        gamma: float | None = None
+        n: float | None = None
+        d: float | None = None
+        method: str
+        substeps: int
 
     def parse(self, t, raw):
-        o = {"smoothing": t.number("smoothing", 0.0, nonnegative=True),
-             "A": t.number("A", None, positive=True), "beta": t.number("beta", None, positive=True),
-             "gamma": t.number("gamma", None), "n": t.number("n", None, positive=True), "d": t.number("d", None),
-             "method": t.string("method", ("closed_form", "rk4")),
-             "substeps": t.integer("substeps", 8, minimum=1, maximum=MAX_SUBSTEPS)}
-        if o["method"] == "closed_form" and o["n"] not in (None, 1.0):
-            raise t.error(f"method 'closed_form' needs n = 1, got n = {o['n']}", "method")
-        if o["method"] == "closed_form" and o["smoothing"] != 0:
+        smoothing = t.number("smoothing", 0.0, nonnegative=True)
+        A, beta = t.number("A", None, positive=True), t.number("beta", None, positive=True)
+        gamma, n, d = t.number("gamma", None), t.number("n", None, positive=True), t.number("d", None)
+        method = t.string("method", ("closed_form", "rk4"))
+        substeps = t.integer("substeps", 8, minimum=1, maximum=MAX_SUBSTEPS)
+        if method == "closed_form" and n not in (None, 1.0):
+            raise t.error(f"method 'closed_form' needs n = 1, got n = {n}", "method")
+        if method == "closed_form" and smoothing != 0:
             raise t.error("method 'closed_form' needs smoothing = 0 (use method = 'rk4')", "method")
-        if o["method"] is None:
+        if method is None:
             levels = raw.get("fit", {}).get("smoothing") if isinstance(raw.get("fit"), Mapping) else None
-            smooth = o["smoothing"] != 0 or (isinstance(levels, list) and any(
+            smooth = smoothing != 0 or (isinstance(levels, list) and any(
                 finite_number(s) and s != 0 for s in levels))
-            o["method"] = "closed_form" if (o["n"] in (None, 1.0) and not smooth) else "rk4"
-        return o
+            method = "closed_form" if (n in (None, 1.0) and not smooth) else "rk4"
+        return self.Options(smoothing=smoothing, A=A, beta=beta, gamma=gamma, n=n, d=d, method=method,
+                            substeps=substeps)
 
     def parameters(self, o):
         return ("A", "beta", "gamma", "n", "d")
@@ -259,17 +285,17 @@ class BoucWenKind(BlockKind):
 
     def build(self, o, v, config):
         return pj.BoucWen(f64(v["A"]), f64(v["beta"]), f64(v["gamma"]), f64(v["n"]), f64(v["d"]),
-                          smoothing=f64(o["smoothing"]), method=o["method"], substeps=o["substeps"])
+                          smoothing=f64(o.smoothing), method=o.method, substeps=o.substeps)
 
     def constraints(self, o):
         return {"A": pj.Positive, "beta": pj.Positive, "n": pj.Positive}
 
     def default_free(self, o, config):
         # the exponent has no effect in the closed form (n = 1)
-        return ("A", "beta", "gamma", "d") + (("n",) if o["method"] == "rk4" else ())
+        return ("A", "beta", "gamma", "d") + (("n",) if o.method == "rk4" else ())
 
     def cost(self, o):
-        return max(1, o["substeps"] // 4)
+        return max(1, o.substeps // 4)
 
 
 def _bouc_wen_grid(beta, gamma, v, rows, block: int = 2**16) -> np.ndarray:
@@ -311,25 +337,32 @@ class MaxwellSlipKind(BlockKind):
     squares of the stiffnesses on a uniform grid of slip thresholds up to 1.2 max|v|."""
 
     table, name = "hysteresis", "maxwell_slip"
-    keys = ("elements", "smoothing", "stiffness", "breakaway")
+    element_parameters = ("stiffness", "breakaway")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(HysteresisOptions):
+        elements: int
+        smoothing: float
+        stiffness: np.ndarray | None = None
+        breakaway: np.ndarray | None = None
 
     def parse(self, t, raw):
         n, (k, f) = t.sized_vectors("elements", 8, MAX_ELEMENTS, {"stiffness": dict(positive=True),
                                                                "breakaway": dict(positive=True)})
-        return {"smoothing": t.number("smoothing", 0.0, nonnegative=True), "elements": n, "stiffness": k,
-                "breakaway": f}
+        return self.Options(smoothing=t.number("smoothing", 0.0, nonnegative=True), elements=n, stiffness=k,
+                            breakaway=f)
 
     def parameters(self, o):
         return ("stiffness", "breakaway")
 
     def placeholder(self, o):
-        n = o["elements"]
+        n = o.elements
         return {"stiffness": np.ones(n), "breakaway": np.arange(1.0, n + 1)}
 
     def start(self, o, data):
         import scipy.optimize
 
-        n, recs = o["elements"], data.records()
+        n, recs = o.elements, data.records()
         # thresholds up to 1.2 max|v|: the widest elements stay elastic (the linear part of the response)
         r = 1.2 * data.max_input() * np.arange(1, n + 1) / n
         play = pj.PlayOperator(jnp.asarray(r))
@@ -341,12 +374,10 @@ class MaxwellSlipKind(BlockKind):
         return {"stiffness": k, "breakaway": k * r}
 
     def build(self, o, v, config):
-        return pj.MaxwellSlip(f64(v["stiffness"]), f64(v["breakaway"]), smoothing=f64(o["smoothing"]))
+        return pj.MaxwellSlip(f64(v["stiffness"]), f64(v["breakaway"]), smoothing=f64(o.smoothing))
 
     def constraints(self, o):
         return {"stiffness": pj.Positive, "breakaway": pj.Positive}
-
-    element_parameters = ("stiffness", "breakaway")
 
     def swap_form(self, block):
         """The elements as stops: stiffness $k_i$ and slip threshold $r_i = f_i/k_i$ (`MaxwellSlip.thresholds`)."""
@@ -365,14 +396,20 @@ class PreisachKind(BlockKind):
     on the relay outputs (the output is linear in them). The switching values stay fixed at the grid."""
 
     table, name = "hysteresis", "preisach"
-    keys = ("levels", "range", "mu", "smoothing")
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Options(HysteresisOptions):
+        levels: int
+        range: tuple[float, float] | None = None
+        mu: np.ndarray | None = None
+        smoothing: float
 
     def parse(self, t, raw):
         n = t.integer("levels", 8, minimum=1, maximum=MAX_LEVELS_PREISACH)
         rng = t.vector("range", 2, ascending=True)
         mu = t.vector("mu", n * (n + 1) // 2)
-        return {"levels": n, "range": None if rng is None else (float(rng[0]), float(rng[1])), "mu": mu,
-                "smoothing": t.number("smoothing", 0.0, nonnegative=True)}
+        return self.Options(levels=n, range=None if rng is None else (float(rng[0]), float(rng[1])), mu=mu,
+                            smoothing=t.number("smoothing", 0.0, nonnegative=True))
 
     def parameters(self, o):
         return ("mu", "range")
@@ -381,7 +418,7 @@ class PreisachKind(BlockKind):
         return ("mu", "range")
 
     def placeholder(self, o):
-        n = o["levels"]
+        n = o.levels
         return {"mu": np.zeros(n * (n + 1) // 2), "range": (-1.0, 1.0)}
 
     def data_derived(self, o, config):
@@ -390,15 +427,15 @@ class PreisachKind(BlockKind):
     def derived_value(self, o, key, block):
         # `Preisach.uniform` puts the relays at the centres of n x n cells of side h on [v_min, v_max]: the largest
         # alpha is v_max - h/2, the smallest beta v_min + h/2 (one level: any range with that centre)
-        n = o["levels"]
+        n = o.levels
         top, bottom = float(np.max(np.asarray(block.alpha))), float(np.min(np.asarray(block.beta)))
         h = (top - bottom) / (n - 1) if n > 1 else 1.0
         return [bottom - h / 2, top + h / 2]
 
     def start(self, o, data):
         vmax = 1.05 * data.max_input()
-        rng = o["range"] if o["range"] is not None else (-vmax, vmax)
-        ones = pj.Preisach.uniform(rng[0], rng[1], o["levels"], smoothing=o["smoothing"])
+        rng = o.range if o.range is not None else (-vmax, vmax)
+        ones = pj.Preisach.uniform(rng[0], rng[1], o.levels, smoothing=o.smoothing)
         eye = jnp.eye(ones.mu.shape[0])
         # the relays' outputs a few at a time (all 55 relays of 10 levels on a 1e6-sample record: a 1.25 GB start)
         cols = np.concatenate([columns_at_rows(lambda j, e, vj=jnp.asarray(v): _relay_outputs(ones, eye[j:e], vj).T,
@@ -411,8 +448,11 @@ class PreisachKind(BlockKind):
 
     def build(self, o, v, config):
         rng = v["range"]
-        return pj.Preisach.uniform(float(rng[0]), float(rng[1]), o["levels"], mu=f64(v["mu"]),
-                                   smoothing=f64(o["smoothing"]))
+        return pj.Preisach.uniform(float(rng[0]), float(rng[1]), o.levels, mu=f64(v["mu"]),
+                                   smoothing=f64(o.smoothing))
+
+    def constraints(self, o):
+        return {}
 
     def default_free(self, o, config):
         return ("mu",)

@@ -6,6 +6,7 @@ are started from, how the blocks are put together, its own constraints, default 
 The generic configuration code (`fitting._config`) names none of them.
 """
 
+import abc
 from collections.abc import Mapping
 from typing import ClassVar
 
@@ -18,17 +19,22 @@ from piezojax import PiezojaxValueError
 
 from ..._predict import actuator_predictor, predict
 from ..table import ConfigTable, f64, finite_number
-from .base import StartData
+from .base import StartData, check_class_attributes
 
 
-class ModelKind:
+class ModelKind(abc.ABC):
     """A kind of whole model (see the module docstring).
 
-    **Class attributes:**
+    A concrete model kind sets `name` and defines the abstract methods (`outputs`, `predictor`, `records`,
+    `build`); the other methods are defaults. Its options (`ModelConfig.model_options`) are a dict of its tables'
+    validated values.
+
+    **Abstract class attribute:** `name`, the kind's name in its table.
+
+    **Class attributes with defaults:**
 
     - `table`: the CONFIG table naming it (`"observer"`, or `"model"` for a model that is not an observer), or
       `None` for the default model (no such table).
-    - `name`: the kind's name in that table.
     - `keys`: the keys of that table besides `kind`.
     - `blocks`: the block tables the model is built from (`"hysteresis"`, `"creep"`, `"dynamics"`);
       `tables`: the other tables it uses (an unused table present in the CONFIG is an error).
@@ -49,30 +55,38 @@ class ModelKind:
     cold_start: ClassVar[bool] = False
     input_unit: ClassVar[str] = "V"
 
-    def parse(self, t: ConfigTable | None, raw: Mapping, source: str) -> dict:
-        """The model's validated options (from its own table `t` and the tables in `tables`)."""
-        return {}
+    def __new__(cls, *args, **kwargs):
+        check_class_attributes(cls, ("name",))
+        return super().__new__(cls)
 
+    @abc.abstractmethod
     def outputs(self, config) -> tuple[str, ...]:
-        raise NotImplementedError
+        """The channels the model predicts."""
 
-    def inputs(self, config) -> tuple[str, ...]:
-        """Measured channels the model reads besides `t` and `v_in`."""
-        return ()
-
+    @abc.abstractmethod
     def predictor(self, config):
-        raise NotImplementedError
+        """The `fitting.Predictor` that simulates the model on an experiment."""
 
+    @abc.abstractmethod
     def records(self, config, dataset) -> list[tuple[np.ndarray, np.ndarray, float]]:
         """`(v_in, y, dt)` per experiment: `y` the quasi-static output of hysteresis + creep (for their starts)."""
-        raise NotImplementedError
+
+    @abc.abstractmethod
+    def build(self, config, blocks: dict, data: StartData | None):
+        """The model from its built `blocks` (table → block or `None`); `data`: the `StartData` of a data-driven
+        start, else `None` (placeholders)."""
+
+    def parse(self, t: ConfigTable | None, raw: Mapping, source: str) -> dict:
+        """The model's validated options (from its own table `t` and the tables in `tables`; default: none)."""
+        return {}
+
+    def inputs(self, config) -> tuple[str, ...]:
+        """Measured channels the model reads besides `t` and `v_in` (default: none)."""
+        return ()
 
     def missing(self, config) -> list[str]:
         """Values of the model's own tables a forward simulation needs and the file does not give."""
         return []
-
-    def build(self, config, blocks: dict, data: StartData | None):
-        raise NotImplementedError
 
     def constraints(self, config) -> dict[str, type]:
         """Attribute of the model → the `pj.AbstractReparam` it is fitted under."""
