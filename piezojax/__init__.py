@@ -77,6 +77,7 @@ from ._hysteresis.preisach import (
 from ._hysteresis.scaled import ScaledHysteresis as ScaledHysteresis
 from ._linear.base import AbstractLinearSystem as AbstractLinearSystem, StateSpace as StateSpace
 from ._linear.butterworth import butterworth as butterworth
+from ._linear.delay import Delay as Delay
 from ._linear.discretise import (
     DiscreteStateSpace as DiscreteStateSpace,
     discretise_state_space as discretise_state_space,
@@ -114,4 +115,4 @@ from ._parametrisation import (
     unwrap as unwrap,
 )
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"

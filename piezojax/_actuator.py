@@ -15,6 +15,7 @@ from ._dtypes import cast_module, module_float_dtype
 from ._hysteresis.base import AbstractHysteresis
 from ._hysteresis.play import exact_cell, exact_flag
 from ._linear.base import AbstractLinearSystem
+from ._linear.delay import Delay, delay_signal
 
 _STRUCTURES = ("parallel", "series")
 
@@ -92,6 +93,8 @@ class Actuator(eqx.Module):
     - `prehistory`: $u_p$ [V], finite, or `None` (default) for no excursion before the record. Needs a hysteresis.
     - `hysteresis_state`: the hysteresis state before the prehistory (a PyTree like `hysteresis.init()`), or
       `None` (default) for demagnetised. Needs a hysteresis.
+    - `delay`: a `pj.Delay`, the dead time between the recorded voltage and the one the actuator sees (an
+      amplifier's latency; the charge follows the delayed voltage too), or `None` (default) for none.
 
     **Example:**
 
@@ -111,6 +114,7 @@ class Actuator(eqx.Module):
     prehistory: Float[Array, ""] | None
     hysteresis_state: PyTree[Array] | None
     structure: str = eqx.field(static=True)
+    delay: Delay | None = None
 
     def __init__(
         self,
@@ -124,6 +128,7 @@ class Actuator(eqx.Module):
         offset: ArrayLike = 0.0,
         prehistory: ArrayLike | None = None,
         hysteresis_state: PyTree[ArrayLike] | None = None,
+        delay: Delay | None = None,
     ):
         if hysteresis is not None and not isinstance(hysteresis, AbstractHysteresis):
             raise PiezojaxValueError(
@@ -159,6 +164,9 @@ class Actuator(eqx.Module):
             hysteresis_state = _check_state(hysteresis, hysteresis_state)
         self.hysteresis_state = hysteresis_state
         self.structure = structure
+        if delay is not None and not isinstance(delay, Delay):
+            raise PiezojaxValueError(f"`delay` must be a pj.Delay or None, got {type(delay).__name__}")
+        self.delay = delay
 
     def check(self) -> "Actuator":
         """`self` with the value checks of `capacitance` and `coupling` attached (`check_value`); each block checks
@@ -256,7 +264,10 @@ class Actuator(eqx.Module):
         dtype = module_float_dtype(self, v_in, dt)
         v = check_signal(v_in, "v_in", dtype)
         dt = check_step(dt, "dt", dtype)
-        return cast_module(self, dtype).check(), v, dt
+        m = cast_module(self, dtype).check()
+        if m.delay is not None:
+            v = delay_signal(v, check_positive(m.delay.time, "delay.time", allow_zero=True) / dt)
+        return m, v, dt
 
     def _initial(self, dtype):
         zero = jnp.zeros((), dtype)

@@ -5,12 +5,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, PyTree
 
-from ._checks import PiezojaxValueError, check_signal, check_step, concrete_or_none
+from ._checks import PiezojaxValueError, check_positive, check_signal, check_step, concrete_or_none
 from ._creep.logarithmic import causal_convolution
 from ._custom_types import Signal, SignalLike
 from ._dtypes import cast_module, module_float_dtype
 from ._hysteresis.base import AbstractHysteresis, HysteresisInverse
 from ._linear.base import AbstractLinearSystem, default_inverse_bandwidth
+from ._linear.delay import delay_signal
 
 
 class ActuatorInverse(eqx.Module):
@@ -64,13 +65,22 @@ class ActuatorInverse(eqx.Module):
     def __call__(self, displacement: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
         """The voltage samples for the desired `displacement` [m] (1-D, real, finite), sample step `dt` [s] and the
         `hold` the actuator will be simulated (or driven) with. **Returns:** voltage [V], the shape of
-        `displacement`."""
+        `displacement`. An actuator's input `delay` is undone by reading the voltage that much ahead (its last
+        sample held), so the last `delay` of the record is not compensated."""
         if hold not in ("zoh", "foh"):
             raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         dtype = module_float_dtype(self, displacement, dt)
         target = check_signal(displacement, "displacement", dtype)
         dt = check_step(dt, "dt", dtype)
         m = cast_module(self, dtype)
+        v = m._voltage(target, dt, hold)
+        if m.actuator.delay is None:
+            return v
+        ahead = check_positive(m.actuator.delay.time, "delay.time", allow_zero=True) / dt
+        return delay_signal(v[::-1], ahead)[::-1]
+
+    def _voltage(self, target: Array, dt: Array, hold: str) -> Array:
+        m, dtype = self, target.dtype
         act = m.actuator.check()
         _, h_r = act._initial(dtype)
         parallel = act.structure == "parallel"

@@ -173,6 +173,7 @@ def test_fit_names_a_lack_of_fit(work, tmp_path, capsys):
     assert 'structure = "series"' in printed
     assert res["cli"]["hints"] and 'structure = \"series\"' in res["cli"]["hints"][0]
     assert (tmp_path / "fit" / "report.txt").read_text().strip() == printed.strip()  # the hint included
+    assert (tmp_path / "fit" / "report.txt").read_text().count("lack of fit:") == 1  # said once
     # held out, a record that continues the misfit is named
     rc = main(["predict", str(tmp_path / "fit"), files[2], "--out", str(tmp_path / "pred")])
     assert rc == 0 and "above the noise: the model misses part of this record's displacement" in capsys.readouterr().out
@@ -498,14 +499,14 @@ def test_config_errors_name_table_key_and_allowed_values(text, expected):
 
 def test_config_defaults_and_free_sets():
     cfg = parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\n[dynamics]\norder = 3\n[charge]\n', "m.toml")
-    assert cfg.hysteresis_options["plays"] == 10 and cfg.outputs == ("displacement", "charge", "current")
+    assert cfg.hysteresis_options.plays == 10 and cfg.outputs == ("displacement", "charge", "current")
     assert cfg.default_free() == ("hysteresis.weights", "hysteresis.thresholds", "hysteresis.w0", "dynamics.omega",
                                   "dynamics.zeta", "dynamics.poles", "capacitance", "coupling", "offset")
     assert "capacitance" not in cfg.fit_free(("displacement",)) and "coupling" in cfg.fit_free(("charge",))
     model = pj.unwrap(cfg.build(None))  # placeholders of the configured shapes
     assert model.hysteresis.weights.shape == (10,) and model.dynamics.order == 3 and float(model.dynamics.gain) == 1
     bw = parse_config('[hysteresis]\nkind = "bouc_wen"\n[fit]\nsmoothing = [0.1, 0.0]\n', "m.toml")
-    assert bw.hysteresis_options["method"] == "rk4" and "hysteresis.n" in bw.default_free()
+    assert bw.hysteresis_options.method == "rk4" and "hysteresis.n" in bw.default_free()
     assert "dynamics.gain" in parse_config('[creep]\nkind = "logarithmic"\n', "m.toml").default_free()
     assert cfg.method == "levenberg_marquardt"
 
