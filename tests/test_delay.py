@@ -7,7 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.interpolate
+from test_cli import CONFIG, DT as CLI_DT, _truth
 
+import fitting
 import piezojax as pj
 
 DT = 1e-3
@@ -83,3 +85,56 @@ def test_an_actuators_delay_reads_its_voltage_late_and_its_inverse_reads_ahead()
     without = error(plain, plain.inverse(0.0, 200.0)(target, DT))
     ignored = error(late, plain.inverse(0.0, 200.0)(target, DT))
     assert with_delay < 1.1 * without and ignored > 10 * with_delay
+
+
+# ------------------------------------------------------------------------------------ in a CONFIG, fitted
+
+
+def _late_plant_records(delay):
+    """Two records of the PI + creep + resonance plant of tests/test_cli.py whose voltage arrives `delay` seconds
+    late (the latency by NumPy's linear interpolation, not by `pj.Delay`), with noise 2e-9 m."""
+    dt = CLI_DT
+    out = []
+    for i, f in enumerate((2.0, 3.0)):
+        t = np.arange(2500) * dt
+        v = (30 + 10 * i) * np.sin(2 * np.pi * f * t) * np.minimum(1, t / 0.2) + 10 * np.sin(2 * np.pi * 3.1 * f * t)
+        late = np.interp(t - delay, t, v, left=v[0])
+        y = np.asarray(_truth().simulate(jnp.asarray(late), dt).displacement)
+        noise = 2e-9 * np.random.default_rng(i).standard_normal(t.size)
+        out.append(fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y + noise, name=f"r{i}"))
+    return fitting.Dataset(out), dt
+
+
+def test_a_config_fits_the_input_delay_with_the_other_parameters(tmp_path):
+    dataset, dt = _late_plant_records(2.6e-3)
+    config = fitting.parse_config(CONFIG + "\n[input]\ndelay = true\n", "late.toml")
+    assert "delay.time" in config.default_free() and "[input] delay" in config.missing_values()
+    cal = fitting.calibrate(config, dataset, progress=False)
+    assert cal.result.success
+    assert float(cal.result.model.delay.time) == pytest.approx(2.6e-3, rel=0.02)
+    assert all(m["displacement"]["rmse_over_noise"] < 1.1 for m in cal.result.metrics.values())
+    # the fit folder predicts with the fitted delay
+    cal.save(tmp_path / "fit", figures=False)
+    folder = fitting.load_fit(tmp_path / "fit")
+    assert float(folder.model.delay.time) == float(cal.result.model.delay.time)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[input]\ndelay = -1e-3\n", r"\[input\] delay: must be true .* a number of seconds >= 0"),
+    ("[input]\ndelay = \"late\"\n", r"\[input\] delay: must be true"),
+    ("[input]\nlatency = 1e-3\n", r"unknown key 'latency'.*delay"),
+])
+def test_bad_input_tables_are_named(text, message):
+    with pytest.raises(pj.PiezojaxValueError, match=message):
+        fitting.parse_config("[hysteresis]\nkind = \"prandtl_ishlinskii\"\nplays = 3\n" + text, "d.toml")
+
+
+def test_a_given_delay_is_a_start_and_simulates():
+    cfg = fitting.parse_config("[hysteresis]\nkind = \"prandtl_ishlinskii\"\nplays = 2\nweights = [1.0, 0.5]\n"
+                               "thresholds = [1.0, 10.0]\n[state]\noffset = false\n[input]\ndelay = 2e-3\n", "d.toml")
+    model = pj.unwrap(cfg.build(None))
+    assert float(model.delay.time) == pytest.approx(2e-3, rel=1e-12) and "delay.time" in cfg.default_free()
+    v = 40 * np.sin(2 * np.pi * 3 * T)
+    plain = eqx.tree_at(lambda a: a.delay, model, None)
+    np.testing.assert_allclose(model.simulate(v, DT).displacement[2:], plain.simulate(v, DT).displacement[:-2],
+                               rtol=0, atol=1e-12)

@@ -29,7 +29,7 @@ from .kinds.models import ACTUATOR, ModelKind, get_model_kind
 from .kinds.options import CreepOptions, HysteresisOptions, KindOptions
 from .table import MAX_POLYNOMIAL, ConfigTable, StartWarning, f64
 
-TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "observer", "model", "data", "fit")
+TABLES = ("hysteresis", "creep", "dynamics", "charge", "state", "input", "observer", "model", "data", "fit")
 MODEL_TABLES = ("observer", "model")  # the tables naming a whole-model kind (none: `pj.Actuator`)
 
 MAX_STEPS = 100_000
@@ -355,7 +355,7 @@ class ModelConfig:
             for attr, reparam in self.kind(table).constraints(self.options(table)).items():
                 model = pj.constrain(model, attribute_getter(where + attr.split(".")), _off_the_bound(reparam))
         for attr, reparam in self.model_kind.constraints(self).items():
-            model = pj.constrain(model, attribute_getter([attr]), _off_the_bound(reparam))
+            model = pj.constrain(model, attribute_getter(attr.split(".")), _off_the_bound(reparam))
         return model
 
 

@@ -107,7 +107,7 @@ def _model_kind(source: str, raw: dict):
         mt = ConfigTable(source, table, raw[table], mkind.keys, model)
     else:
         model, mkind, mt = ACTUATOR.name, ACTUATOR, None
-    for t in ("hysteresis", "creep", "dynamics", "charge", "state"):
+    for t in ("hysteresis", "creep", "dynamics", "charge", "state", "input"):
         if t in raw and t not in mkind.tables + mkind.blocks:
             raise PiezojaxValueError(
                 f"{source}: [{t}] is not used by the {mkind.name.replace('_', ' ')} model (kind {model!r}); remove "

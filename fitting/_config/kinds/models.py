@@ -137,29 +137,44 @@ def get_model_kind(name: str) -> ModelKind:
 
 
 _STATE_KEYS = ("offset", "prehistory")
+_INPUT_KEYS = ("delay",)
+
+
+def _switches(raw: Mapping, source: str, table: str, keys: tuple[str, ...], what: str) -> tuple[dict, ConfigTable]:
+    """A table of switches (`[state]`, `[input]`): each key `true` (in the model, started from the data), `false`
+    (not in the model) or a number (in the model, this start value; `what` says which numbers)."""
+    st = ConfigTable(source, table, raw.get(table, {}), keys)
+    if "kind" in st.data:
+        raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(keys)}", "kind")
+    out: dict = {}
+    for key in keys:
+        if key not in st.data:
+            continue
+        value = st.data[key]
+        if not (isinstance(value, bool) or finite_number(value)) or (
+                what != "a number" and not isinstance(value, bool) and value < 0):
+            raise st.error(f"must be true (fitted from the data), false (none) or {what} (its start value), got "
+                           f"{value!r}", key)
+        out[key] = value if isinstance(value, bool) else float(value)
+    return out, st
 
 
 def parse_state(raw: Mapping, source: str) -> dict:
     """The `[state]` table: `offset` and `prehistory`, each `True` (in the model, started from the data), `False`
     (not in the model) or a number (in the model, this start value)."""
-    out: dict = {}
     if "state" not in raw:
-        return out
-    st = ConfigTable(source, "state", raw["state"], _STATE_KEYS)
-    if "kind" in st.data:
-        raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(_STATE_KEYS)}", "kind")
-    for key in _STATE_KEYS:
-        if key not in st.data:
-            continue
-        value = st.data[key]
-        if not (isinstance(value, bool) or finite_number(value)):
-            raise st.error(f"must be true (fitted from the data), false (none) or a number (its start value), got "
-                           f"{value!r}", key)
-        out[key] = value if isinstance(value, bool) else float(value)
+        return {}
+    out, st = _switches(raw, source, "state", _STATE_KEYS, "a number")
     h = raw.get("hysteresis", {})
     if out.get("prehistory", False) is not False and h.get("kind", "none") == "none":
         raise st.error("a prehistory sets the hysteresis' remanent state; the model has no hysteresis", "prehistory")
     return out
+
+
+def parse_input(raw: Mapping, source: str) -> dict:
+    """The `[input]` table: `delay`, the dead time between the recorded voltage and the one the actuator sees
+    (`pj.Delay`): `True` (fitted from a data-driven start), `False` (none) or a number of seconds >= 0 (its start)."""
+    return _switches(raw, source, "input", _INPUT_KEYS, "a number of seconds >= 0")[0] if "input" in raw else {}
 
 
 class _WithState(ModelKind):
@@ -200,30 +215,34 @@ class _WithState(ModelKind):
         recs = [e for e in dataset if e.has("displacement") and all(e.has(c) for c in self.inputs(config))]
         if not recs:
             return model
-
-        def with_offset(m):
-            if offset is not True:
-                return m
-            res = np.concatenate([np.asarray(e["displacement"]) - self.displacement(config, m, e) for e in recs])
-            b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
-            return eqx.tree_at(lambda a: a.offset, m, jnp.asarray(b + float(m.offset), m.offset.dtype))
-
-        def error(m) -> float:
-            total = sum(float(np.sum(((self.displacement(config, m, e) - np.asarray(e["displacement"]))
-                                      / max(float(np.ptp(e["displacement"])), np.finfo(float).tiny)) ** 2))
-                        for e in recs)
-            return total if np.isfinite(total) else np.inf
-
         if pre is not True:
-            return with_offset(model)
+            return self.with_offset(config, model, recs)
         vmax = max(float(np.max(np.abs(e.v_in))) for e in recs)
         best, best_err = None, np.inf
         for u in vmax * np.linspace(-1.0, 1.0, 9):
-            cand = with_offset(eqx.tree_at(lambda a: a.prehistory, model, jnp.asarray(u, model.prehistory.dtype)))
-            err = error(cand)
+            cand = eqx.tree_at(lambda a: a.prehistory, model, jnp.asarray(u, model.prehistory.dtype))
+            cand = self.with_offset(config, cand, recs)
+            err = self.start_error(config, cand, recs)
             if best is None or err < best_err:
                 best, best_err = cand, err
         return best
+
+    def with_offset(self, config, model, recs):
+        """`model` with its offset started at the mean residual of the displacement over `recs` (where the file
+        gives no number)."""
+        if self.offset(config) is not True:
+            return model
+        res = np.concatenate([np.asarray(e["displacement"]) - self.displacement(config, model, e) for e in recs])
+        b = float(np.mean(res)) if np.all(np.isfinite(res)) else 0.0
+        return eqx.tree_at(lambda a: a.offset, model, jnp.asarray(b + float(model.offset), model.offset.dtype))
+
+    def start_error(self, config, model, recs) -> float:
+        """The sum of squared displacement errors over `recs`, each relative to its record's range (inf where not
+        finite)."""
+        total = sum(float(np.sum(((self.displacement(config, model, e) - np.asarray(e["displacement"]))
+                                  / max(float(np.ptp(e["displacement"])), np.finfo(float).tiny)) ** 2))
+                    for e in recs)
+        return total if np.isfinite(total) else np.inf
 
 
 # ---------------------------------------------------------------------------------------------- the actuator
@@ -233,17 +252,18 @@ _CHARGE_KEYS = ("capacitance", "coupling")
 
 
 class ActuatorModel(_WithState):
-    r"""`pj.Actuator`: the blocks, `[charge]` ($q = C_p V + T\delta$: `capacitance`, `coupling`) and `[state]`
-    (`offset`, `prehistory`: `true` fitted from a data-driven start, `false` absent, or a number, the start)."""
+    r"""`pj.Actuator`: the blocks, `[charge]` ($q = C_p V + T\delta$: `capacitance`, `coupling`), `[state]`
+    (`offset`, `prehistory`: `true` fitted from a data-driven start, `false` absent, or a number, the start) and
+    `[input]` (`delay`, a `pj.Delay` of the voltage, in seconds, the same way)."""
 
     table, name = None, "actuator"
     blocks = ("hysteresis", "creep", "dynamics")
-    tables = ("charge", "state")
+    tables = ("charge", "state", "input")
     scale_in_dynamics = True
     cold_start = True
 
     def parse(self, t, raw, source):
-        out: dict = {"charge": None, "state": parse_state(raw, source)}
+        out: dict = {"charge": None, "state": parse_state(raw, source), "input": parse_input(raw, source)}
         if "charge" in raw:
             cht = ConfigTable(source, "charge", raw["charge"], _CHARGE_KEYS)
             out["charge"] = {"capacitance": cht.number("capacitance", None, nonnegative=True),
@@ -266,17 +286,48 @@ class ActuatorModel(_WithState):
     def missing(self, config):
         charge = config.charge or {}
         return [f"[charge] {k}" for k in _CHARGE_KEYS if config.charge is not None and charge.get(k) is None] + (
-            super().missing(config))
+            super().missing(config)) + (["[input] delay"] if self.delay(config) is True else [])
 
     def build(self, config, blocks, data):
         cap = coup = 0.0
         if config.charge is not None:
             cap, coup = self._charge(config, data)
+        delay = self.delay(config)
+        if delay is not False:  # a start of one sample where the data will set it (none: any positive value)
+            delay = pj.Delay(f64(delay if delay is not True else data.dt() if data is not None else 1e-6))
         return pj.Actuator(blocks["hysteresis"], blocks["creep"], blocks["dynamics"], capacitance=f64(cap),
-                           coupling=f64(coup), structure=config.creep_structure, **self.state_values(config))
+                           coupling=f64(coup), structure=config.creep_structure, **self.state_values(config),
+                           delay=None if delay is False else delay)
+
+    def delay(self, config):
+        """`[input] delay`: `True`, `False` or its start [s]."""
+        return config.model_options.get("input", {}).get("delay", False)
+
+    def constraints(self, config):
+        return {"delay.time": pj.Positive} if self.delay(config) is not False else {}
 
     def default_free(self, config):
-        return (("capacitance", "coupling") if config.charge is not None else ()) + self.state_free(config)
+        return (("capacitance", "coupling") if config.charge is not None else ()) + self.state_free(config) + (
+            ("delay.time",) if self.delay(config) is not False else ())
+
+    def start_state(self, config, model, dataset):
+        """`_WithState`'s offset and prehistory; then, where `[input] delay = true`, the delay of a grid from a
+        quarter of a sample to eight samples whose simulation is closest to the data (the offset started again)."""
+        model = super().start_state(config, model, dataset)
+        if self.delay(config) is not True:
+            return model
+        recs = [e for e in dataset if e.has("displacement")]
+        if not recs:
+            return model
+        dt = min(e.dt for e in recs)
+        best, best_err = model, np.inf
+        for k in (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0):
+            cand = eqx.tree_at(lambda a: a.delay.time, model, jnp.asarray(k * dt, model.delay.time.dtype))
+            cand = self.with_offset(config, cand, recs)
+            err = self.start_error(config, cand, recs)
+            if err < best_err:
+                best, best_err = cand, err
+        return best
 
     def fit_free(self, config, free, targets):
         if targets is not None and not {"charge", "current"} & set(targets):
