@@ -2,6 +2,9 @@
 
 - The pipeline: `calibrate` does everything `piezojax fit` does (checks, data-driven starts, multi-start, the
   refinement rounds, hints) and returns a `Calibration` (`.result`, `.report()`, `.save(folder)`).
+- Structure identification: `identify` searches the structure of an actuator's model (hysteresis kind, creep,
+  dynamics, initial state, input delay), judged on data each candidate's fit did not see, and calibrates the one
+  kept (`Identification`, `Structure`).
 - Data: `Experiment`, `Dataset`, `load_experiment`, `save_experiment` (CSV, NPZ, HDF5, MATLAB .mat).
 - Model configurations: `load_config`, `parse_config`, `ModelConfig`; the registry of block kinds a CONFIG can
   name (`BlockKind`, its typed options `KindOptions`, `HysteresisOptions`, `CreepOptions`, `register_kind`,
@@ -42,6 +45,7 @@ _EXPORTS = {
     ),
     "._fit_folder": ("FitFolder", "load_fit"),
     "._fleet": ("FleetResult", "fit_fleet"),
+    "._identify": ("Identification", "Structure", "identify"),
     "._initialise": ("cold_start_actuator", "cold_start_free"),
     "._plots": (
         "plot_convergence", "plot_loops", "plot_parameters", "plot_timeseries", "save_figures",
@@ -109,6 +113,7 @@ if TYPE_CHECKING:  # the same names for static analysis
     )
     from ._fit_folder import FitFolder as FitFolder, load_fit as load_fit
     from ._fleet import FleetResult as FleetResult, fit_fleet as fit_fleet
+    from ._identify import Identification as Identification, Structure as Structure, identify as identify
     from ._initialise import cold_start_actuator as cold_start_actuator, cold_start_free as cold_start_free
     from ._plots import (
         plot_convergence as plot_convergence,

@@ -18,6 +18,14 @@ def _cmd_fit(args) -> int:
     quiet = args.quiet
     if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
         raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
+    if args.auto:
+        return _cmd_fit_auto(args)
+    if args.base is not None:
+        raise _error("--config gives the fixed tables of a structure search: use it with --auto (without --auto, "
+                     "CONFIG is the first argument)")
+    if not args.data:
+        raise _error("the following arguments are required: DATA (the files to fit, after CONFIG; or --auto to "
+                     "search the structure without a CONFIG)")
     out = _check_output(args.out, args.overwrite, "fit", inputs=[args.config, *args.data])
     config = load_config(args.config)
     settings = _data_settings(args, config.data)
@@ -36,6 +44,44 @@ def _cmd_fit(args) -> int:
         _check_interrupted()
         _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
     _out(cal.report())
+    if result.code == "interrupted":
+        _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
+        return _interrupt_status()
+    if not result.success:
+        _info(f"the fit did not converge ({result.reason}); results written to {out}")
+        return EXIT_NOT_CONVERGED
+    return EXIT_OK
+
+
+def _cmd_fit_auto(args) -> int:
+    """`piezojax fit --auto DATA... [--config CONFIG]`: the structure search (`fitting.identify`), then the folder
+    of the structure kept."""
+    import fitting
+
+    from .._config import load_config
+
+    quiet = args.quiet
+    data = [args.config, *args.data]
+    out = _check_output(args.out, args.overwrite, "fit", inputs=[*data, *([args.base] if args.base else [])])
+    base = load_config(args.base) if args.base else None
+    settings = _data_settings(args, base.data if base is not None else {})
+    with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
+        dataset, unit_warnings = _load_data(data, settings, args.group)
+        if args.window is not None:
+            dataset = _windowed(dataset, args.window)
+        ident = fitting.identify(dataset, base=base, max_steps=args.max_steps, progress=not quiet,
+                                 log=lambda m, warning=False: _info(m, quiet and not warning))
+        _info(ident.table(), quiet)
+        result = ident.calibration.result
+        if result.code == "interrupted":
+            _consume_interrupt()
+        _info(f"writing {out}", quiet)
+        source = args.base or str(Path(out) / "config.toml")  # without a base: the structure kept, written there
+        ident.write_files(tmp, figures=not args.no_figures, config_source=source, data=data, data_settings=settings,
+                          window=args.window, read_warnings=unit_warnings)
+        _check_interrupted()
+        _hold_signals()
+    _out(ident.report())
     if result.code == "interrupted":
         _info(f"interrupted: the last accepted parameters are saved in {out} (result.json: code 'interrupted')")
         return _interrupt_status()

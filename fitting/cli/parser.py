@@ -22,6 +22,7 @@ CONFIG is a TOML file naming the model blocks, their parameter values (for `fit`
   [dynamics]    order = 0 .. 8 (gain = 1, omega [rad/s], zeta, poles [rad/s] < 0)
                 zero_pairs (zero_omega [rad/s], zero_zeta), real_zeros (zeros [rad/s])
   [state]       offset = true | false | value [m];  prehistory = false | true | value [V]
+  [input]       delay = false | true | value [s]   (the voltage's dead time, fractional samples)
   [charge]      capacitance [F], coupling [C/m]   (an actuator that also predicts charge and current)
   [observer]    kind = "current_integration": paper 001 self-sensing, displacement and force from v_in and
                 v_out; integrator_capacitance, reference_capacitance, leakage_resistance, force_sensitivity,
@@ -61,6 +62,13 @@ together, the lower cost kept), see the README ("Command line").
 examples:
   piezojax fit pi_creep.toml run1.csv run2.npz run3.h5 --out fits/pi_creep
   piezojax fit selfsensing.toml contact.mat --out fits/obs --overwrite --max-steps 50
+  piezojax fit --auto run1.csv run2.csv --out fits/auto          (search the structure: no CONFIG)
+  piezojax fit --auto run1.csv --config units.toml --out fits/auto   (CONFIG's tables fixed, the rest searched)
+
+With --auto the model's structure is searched (hysteresis kind, creep, dynamics, prehistory, input delay), each
+candidate fitted on part of the data and judged on the rest (the last file held out, or the end of a single
+record); the simplest within the best's uncertainty is fitted on every file and written to DIR, its config.toml
+the structure chosen, the ranking in report.txt and result.json ("identification").
 
 DIR receives result.json (metrics per experiment and channel, parameters with standard errors, convergence),
 model.eqx (the fitted parameters), config.toml (the configuration, to rebuild the model), report.txt and PNG
@@ -145,8 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
         "files at once) and write the result folder DIR.\n\n" + _CONFIG_HELP,
         epilog=_FIT_EXAMPLES, formatter_class=fmt,
     )
-    fit.add_argument("config", metavar="CONFIG", help="TOML model configuration")
-    fit.add_argument("data", metavar="DATA", nargs="+", help="experiment files (.csv, .npz, .h5/.hdf5, .mat)")
+    fit.add_argument("config", metavar="CONFIG", help="TOML model configuration (with --auto: the first DATA file)")
+    fit.add_argument("data", metavar="DATA", nargs="*", help="experiment files (.csv, .npz, .h5/.hdf5, .mat)")
+    fit.add_argument("--auto", action="store_true", help="search the model's structure (no CONFIG: every "
+                     "positional argument is a DATA file; see --config)")
+    fit.add_argument("--config", dest="base", metavar="CONFIG", help="with --auto: a CONFIG whose tables are fixed "
+                     "(units, [fit] options, a block you know); the rest is searched")
     fit.add_argument("--out", metavar="DIR", required=True,
                      help="result folder to create (absent or empty; see --overwrite)")
     fit.add_argument("--overwrite", action="store_true",

@@ -1,0 +1,232 @@
+r"""`identify`: find the structure of an actuator's model from its records, then calibrate it.
+
+The search is greedy, by stages, each fitting the current structure's neighbours in one respect and keeping the one
+`select` keeps among them and the current one (`validation.py`): the creep (none; Kelvin–Voigt or lag, in series or
+in parallel; logarithmic), the dynamics (0, 1, 2, 4 poles), the hysteresis kind (every kind of `HYSTERESIS_KINDS`,
+so each is fitted and ranked once), one more creep lag, then an output polynomial, a prehistory and an input delay
+one at a time. It starts from `START`. A candidate that a stage has fitted already is not fitted again. Finally the
+structure `select` keeps among every candidate is calibrated on every record (`fitting.calibrate`).
+"""
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from piezojax import PiezojaxValueError
+
+from .. import files
+from .._calibrate import Calibration, calibrate
+from .._config import ModelConfig, parse_config
+from .._data import Dataset, experiments_of
+from .._refine import silent
+from .structures import (
+    Structure,
+    creep_neighbours,
+    deeper_creep,
+    dynamics_neighbours,
+    extra_neighbours,
+    fixed_tables,
+    hysteresis_neighbours,
+)
+from .validation import BLOCKS, Split, Z, scaled_errors, score, select, split
+
+START = Structure("prandtl_ishlinskii", 8, creep="kelvin_voigt", creep_order=1, creep_structure="series")
+"""Where the search starts: PI(8) with one Kelvin–Voigt lag in series, no dynamics."""
+
+CANDIDATE_MAX_STEPS = 300
+"""Steps of a candidate's fit (the chosen structure's final fit takes the CONFIG's `[fit] max_steps`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One structure the search fitted: its CONFIG, its fit on the training records, its number of fitted
+    parameters, its training and validation scores (RMSE over the noise), its fit's code and time."""
+
+    structure: Structure
+    config: ModelConfig
+    parameters: int
+    training: float
+    validation: float
+    code: str
+    seconds: float
+    errors: np.ndarray = dataclasses.field(repr=False)
+
+    def row(self) -> dict:
+        return {"structure": self.structure.label(), "config": self.config.text, "parameters": self.parameters,
+                "training_rmse_over_noise": self.training, "validation_rmse_over_noise": self.validation,
+                "code": self.code, "seconds": round(self.seconds, 3)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Identification:
+    """What `identify` returns: the chosen structure calibrated on every record (`calibration`), every candidate in
+    the order fitted, which one was kept and which were within the best's uncertainty, the split and the time."""
+
+    calibration: Calibration
+    candidates: list[Candidate]
+    kept: int
+    within: list[bool]
+    split: str
+    seconds: float
+
+    @property
+    def chosen(self) -> Candidate:
+        return self.candidates[self.kept]
+
+    def table(self) -> str:
+        """The ranking: one line per candidate, best validation score first, the one kept marked `*`, those within
+        the best's uncertainty `~`."""
+        order = sorted(range(len(self.candidates)), key=lambda i: self.candidates[i].validation)
+        width = max(len(c.structure.label()) for c in self.candidates)
+        lines = [f"structure identification: {len(self.candidates)} candidates fitted in {self.seconds:.0f} s; "
+                 f"{self.split}",
+                 f"  kept: the fewest parameters within {Z:g} standard errors of the best validation score "
+                 "(* kept, ~ within)",
+                 f"    {'structure':<{width}}  params  train/noise  valid/noise  seconds  code"]
+        for i in order:
+            c = self.candidates[i]
+            mark = "*" if i == self.kept else "~" if self.within[i] else " "
+            lines.append(f"  {mark} {c.structure.label():<{width}}  {c.parameters:>6}  {c.training:>11.3f}  "
+                         f"{c.validation:>11.3f}  {c.seconds:>7.1f}  {c.code}")
+        return "\n".join(lines)
+
+    def report(self) -> str:
+        return self.table() + "\n\n" + self.calibration.report()
+
+    def summary(self) -> dict:
+        """The `identification` entry of `result.json`."""
+        return {"candidates": [c.row() for c in self.candidates], "kept": self.kept, "within": self.within,
+                "split": self.split, "seconds": round(self.seconds, 3), "chosen": self.chosen.structure.label(),
+                "rule": f"the fewest fitted parameters whose mean squared validation error over the noise exceeds "
+                        f"the best's by at most {Z:g} standard errors of the difference ({BLOCKS} blocks)"}
+
+    def write_files(self, folder, *, figures: bool = True, **summary) -> None:
+        """The calibration's fit folder files (`Calibration.write_files`; its `config.toml` the structure kept),
+        with the ranking first in `report.txt` and `identification` in `result.json`."""
+        folder = Path(folder)
+        self.calibration.write_files(folder, figures=figures, **summary)
+        result = json.loads((folder / "result.json").read_text())
+        result["identification"] = self.summary()
+        files.save_json(folder / "result.json", result)
+        files.atomic_write_text(folder / "report.txt", self.report() + "\n")
+
+    def save(self, path, *, overwrite: bool = False, figures: bool = True, **summary) -> Path:
+        """Write the fit folder `path/` atomically (see `Calibration.save`)."""
+        path = Path(path)
+        with files.atomic_directory(path, overwrite=overwrite, kind="fit") as tmp:
+            self.write_files(tmp, figures=figures, **summary)
+        return path
+
+
+def identify(dataset, *, base: str | ModelConfig | None = None, max_steps: int | None = None,
+             progress: bool = False, log: Callable = silent) -> Identification:
+    """Search the structure of an actuator's model (`pj.Actuator`) on `dataset`, then calibrate the one kept.
+
+    **Arguments:**
+
+    - `dataset`: a `Dataset`, an `Experiment` or a list of them, with `displacement` (see `validation.split` for
+      how they are divided between fitting and validation).
+    - `base`: a CONFIG (its text, or a `ModelConfig`) whose tables are fixed: the search leaves a `[hysteresis]`,
+      `[creep]`, `[dynamics]`, `[state]` or `[input]` it gives as it is, and its `[fit]` and `[data]` apply to every
+      candidate.
+    - `max_steps`: the final fit's steps (default: the CONFIG's `[fit] max_steps`).
+    - `progress`, `log`: as for `fitting.calibrate` (`log` gets one line per candidate).
+
+    **Returns:** an `Identification`: `.calibration` the calibrated model of the structure kept (`.save(path)` as
+    `piezojax fit` writes it; its `config.toml` is that structure's CONFIG), `.table()` the ranking.
+
+    ```python
+    ident = fitting.identify(fitting.Dataset.from_files(["run1.csv", "run2.csv"]))
+    print(ident.table()); ident.calibration.save("fits/auto")
+    ```
+    """
+    t0 = time.perf_counter()
+    base_text = base.text if isinstance(base, ModelConfig) else (base or "")
+    fixed = fixed_tables(base_text)
+    if not isinstance(dataset, Dataset):
+        dataset = Dataset(experiments_of(dataset))
+    if not all(e.has("displacement") for e in dataset):
+        raise PiezojaxValueError("the identification fits displacement: every record needs a 'displacement' column")
+    parts = split(dataset)
+    log(f"structure identification: {parts.description}")
+    search = _Search(parts, base_text, fixed, log)
+    current = search.stage([START], None)
+    for neighbours in (creep_neighbours, dynamics_neighbours, hysteresis_neighbours, deeper_creep):
+        current = search.stage(neighbours(current), current)
+    for extra in extra_neighbours(current):
+        current = search.stage([extra], current)
+    kept, within = select([c.errors for c in search.candidates], [c.parameters for c in search.candidates])
+    chosen = search.candidates[kept]
+    log(f"kept {chosen.structure.label()}; calibrating it on every record")
+    cal = calibrate(chosen.config, dataset, max_steps=max_steps, progress=progress, log=log)
+    return Identification(cal, search.candidates, kept, within, parts.description, time.perf_counter() - t0)
+
+
+class _Search:
+    """The candidates fitted so far, by structure (each fitted once)."""
+
+    def __init__(self, parts: Split, base: str, fixed: set[str], log: Callable):
+        self.parts, self.base, self.fixed, self.log = parts, base, fixed, log
+        self.candidates: list[Candidate] = []
+        self.by_structure: dict[Structure, int] = {}
+
+    def stage(self, structures: list[Structure], current: Structure | None) -> Structure:
+        """Fit the structures not fitted yet; the one `select` keeps among them and `current`."""
+        indices = [] if current is None else [self.by_structure[current]]
+        for s in structures:
+            s = self._effective(s)
+            if s is None:
+                continue
+            if s not in self.by_structure:
+                self.by_structure[s] = len(self.candidates)
+                self.candidates.append(self._fit(s))
+            indices.append(self.by_structure[s])
+        indices = list(dict.fromkeys(indices))
+        fitted = [self.candidates[i] for i in indices]
+        if not any(np.isfinite(c.validation) for c in fitted):
+            return current if current is not None else fitted[0].structure
+        kept, _ = select([c.errors for c in fitted], [c.parameters for c in fitted])
+        return fitted[kept].structure
+
+    def _effective(self, s: Structure) -> Structure | None:
+        """`s` as the base CONFIG leaves it (a fixed table's part is the base's, so it is not varied), or None when
+        the CONFIG cannot express it."""
+        if not s.valid():
+            return None
+        reset = {}
+        if "hysteresis" in self.fixed:
+            reset |= dict(hysteresis=START.hysteresis, elements=START.elements, polynomial=0)
+        if "creep" in self.fixed:
+            reset |= dict(creep="none", creep_order=1, creep_structure="parallel")
+        if "dynamics" in self.fixed:
+            reset |= dict(dynamics=0)
+        if "state" in self.fixed:
+            reset |= dict(prehistory=False)
+        if "input" in self.fixed:
+            reset |= dict(delay=False)
+        return dataclasses.replace(s, **reset)
+
+    def _fit(self, s: Structure) -> Candidate:
+        t0 = time.perf_counter()
+        text = s.toml(self.base)
+        config = parse_config(text, f"candidate {s.label()}")
+        config = dataclasses.replace(config, max_steps=min(config.max_steps, CANDIDATE_MAX_STEPS))
+        try:
+            cal = calibrate(config, self.parts.training, progress=False)
+        except PiezojaxValueError as e:
+            self.log(f"  {s.label()}: not fitted ({e})")
+            return Candidate(s, config, 0, np.inf, np.inf, "not_fitted", time.perf_counter() - t0,
+                             np.full(1, np.nan))
+        result = cal.result
+        errors = scaled_errors(result.model, config.predictor(), self.parts.validation, cal.targets)
+        training = max((m.get("rmse_over_noise") or np.nan for chans in result.metrics.values()
+                        for m in chans.values()), default=np.nan)
+        c = Candidate(s, config, len(result.parameter_names), float(training), score(errors), result.code,
+                      time.perf_counter() - t0, errors)
+        self.log(f"  {s.label()}: {c.parameters} parameters, RMSE/noise {c.training:.3f} training, "
+                 f"{c.validation:.3f} validation ({c.code}, {c.seconds:.1f} s)")
+        return c

@@ -1,0 +1,144 @@
+"""The model structures the identification searches: `Structure` (a hysteresis kind, a creep, the dynamics' order,
+the initial state, an input delay) written as a CONFIG, and the neighbours of a structure that each stage fits."""
+
+import dataclasses
+import tomllib
+
+from piezojax import PiezojaxValueError
+
+HYSTERESIS_KINDS = ("none", "prandtl_ishlinskii", "play", "bouc_wen", "maxwell_slip", "preisach")
+"""Every hysteresis kind the search fits at least once."""
+
+_ELEMENT_KEY = {"prandtl_ishlinskii": "plays", "play": "plays", "maxwell_slip": "elements", "preisach": "levels"}
+_SHORT = {"none": "no hysteresis", "prandtl_ishlinskii": "PI", "play": "play", "bouc_wen": "Bouc-Wen",
+          "maxwell_slip": "Maxwell slip", "preisach": "Preisach", "kelvin_voigt": "KV", "lag": "lag",
+          "logarithmic": "log"}
+SEARCHED_TABLES = ("hysteresis", "creep", "dynamics", "state", "input")
+"""The CONFIG tables a structure writes; a base CONFIG that gives one of them fixes it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Structure:
+    """One model structure of `pj.Actuator`: the hysteresis kind (`elements`: its plays, elements or levels; an
+    output `polynomial` of that degree, 0 for none), the creep kind (`creep_order` lags, in `creep_structure`), the
+    dynamics' `order` (poles, from 0), a fitted hysteresis `prehistory` and an input `delay`."""
+
+    hysteresis: str = "prandtl_ishlinskii"
+    elements: int = 8
+    polynomial: int = 0
+    creep: str = "none"
+    creep_order: int = 1
+    creep_structure: str = "parallel"
+    dynamics: int = 0
+    prehistory: bool = False
+    delay: bool = False
+
+    def label(self) -> str:
+        """A short name: `PI(8) + KV(1) series + 2 poles + prehistory + delay`."""
+        h = _SHORT[self.hysteresis]
+        if self.hysteresis in _ELEMENT_KEY:
+            h += f"({self.elements})"
+        if self.polynomial:
+            h += f" + polynomial {self.polynomial}"
+        parts = [h]
+        if self.creep != "none":
+            order = f"({self.creep_order})" if self.creep in ("kelvin_voigt", "lag") else ""
+            parts.append(f"{_SHORT[self.creep]}{order} {self.creep_structure}")
+        if self.dynamics:
+            parts.append(f"{self.dynamics} pole{'s' if self.dynamics > 1 else ''}")
+        parts += ["prehistory"] * self.prehistory + ["delay"] * self.delay
+        return " + ".join(parts)
+
+    def tables(self) -> dict[str, str]:
+        """The structure's CONFIG tables, as TOML text by table name."""
+        out = {}
+        h = [f'kind = "{self.hysteresis}"']
+        if self.hysteresis in _ELEMENT_KEY:
+            h.append(f"{_ELEMENT_KEY[self.hysteresis]} = {self.elements}")
+        if self.polynomial and self.hysteresis != "none":
+            h.append(f"polynomial = {self.polynomial}")
+        out["hysteresis"] = h
+        if self.creep != "none":
+            c = [f'kind = "{self.creep}"']
+            if self.creep == "kelvin_voigt":
+                c.append(f"order = {self.creep_order}")
+            elif self.creep == "lag":
+                c.append(f"lags = {self.creep_order}")
+            c.append(f'structure = "{self.creep_structure}"')
+            out["creep"] = c
+        if self.dynamics:
+            out["dynamics"] = [f"order = {self.dynamics}"]
+        if self.prehistory and self.hysteresis != "none":
+            out["state"] = ["prehistory = true"]
+        if self.delay:
+            out["input"] = ["delay = true"]
+        return {table: "\n".join(lines) for table, lines in out.items()}
+
+    def toml(self, base: str = "") -> str:
+        """The CONFIG of this structure: the tables of `base` (a CONFIG's text) as they are, and this structure's
+        tables that `base` does not give."""
+        given = fixed_tables(base)
+        own = [f"[{table}]\n{text}\n" for table, text in self.tables().items() if table not in given]
+        return "\n".join(own) + ("\n" + base if base.strip() else "")
+
+    def valid(self) -> bool:
+        """Whether the CONFIG can express it (a lag creep only in series; a prehistory needs a hysteresis)."""
+        return not ((self.creep == "lag" and self.creep_structure != "series")
+                    or (self.prehistory and self.hysteresis == "none")
+                    or (self.hysteresis == "none" and self.creep == "none" and self.dynamics == 0))
+
+
+def fixed_tables(base: str) -> set[str]:
+    """The searched tables a base CONFIG gives (the search leaves them as they are)."""
+    if not base.strip():
+        return set()
+    try:
+        raw = tomllib.loads(base.removeprefix("\ufeff"))
+    except tomllib.TOMLDecodeError as e:
+        raise PiezojaxValueError(f"the base CONFIG is not valid TOML ({' '.join(str(e).split())})") from e
+    if "observer" in raw or "model" in raw:
+        raise PiezojaxValueError("the identification searches the structure of an actuator (pj.Actuator); a base "
+                                 "CONFIG with [observer] or [model] is not searched")
+    return {t for t in SEARCHED_TABLES if t in raw}
+
+
+def creep_neighbours(s: Structure) -> list[Structure]:
+    """`s` with each creep the search tries: none; Kelvin-Voigt of one and two lags and a lag creep, in series and
+    in parallel (a lag creep only in series); a logarithmic creep in either structure."""
+    out = [dataclasses.replace(s, creep="none")]
+    for order in (1, 2):
+        for structure in ("series", "parallel"):
+            out.append(dataclasses.replace(s, creep="kelvin_voigt", creep_order=order, creep_structure=structure))
+    out.append(dataclasses.replace(s, creep="lag", creep_order=1, creep_structure="series"))
+    out += [dataclasses.replace(s, creep="logarithmic", creep_structure=st) for st in ("series", "parallel")]
+    return out
+
+
+def deeper_creep(s: Structure) -> list[Structure]:
+    """One more lag than the chosen Kelvin-Voigt or lag creep (up to three)."""
+    if s.creep not in ("kelvin_voigt", "lag") or s.creep_order >= 3:
+        return []
+    return [dataclasses.replace(s, creep_order=s.creep_order + 1)]
+
+
+def dynamics_neighbours(s: Structure) -> list[Structure]:
+    """`s` with no dynamics, one real pole, one and two resonances."""
+    return [dataclasses.replace(s, dynamics=n) for n in (0, 1, 2, 4)]
+
+
+def hysteresis_neighbours(s: Structure) -> list[Structure]:
+    """`s` with each hysteresis kind (`HYSTERESIS_KINDS`)."""
+    return [dataclasses.replace(s, hysteresis=k, polynomial=0, prehistory=s.prehistory and k != "none")
+            for k in HYSTERESIS_KINDS]
+
+
+def extra_neighbours(s: Structure) -> list[Structure]:
+    """`s` with each of what it lacks: an output polynomial of degree 2, a prehistory, an input delay."""
+    out = []
+    if s.hysteresis != "none" and not s.polynomial:
+        out.append(dataclasses.replace(s, polynomial=2))
+    if s.hysteresis != "none" and not s.prehistory:
+        out.append(dataclasses.replace(s, prehistory=True))
+    if not s.delay:
+        out.append(dataclasses.replace(s, delay=True))
+    return out

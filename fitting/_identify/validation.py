@@ -1,0 +1,110 @@
+r"""How the identification judges a structure: on data its fit did not see (`Split`), by its validation error over
+the measurement noise (`score`), and which structure it keeps (`select`).
+
+**The split.** With several records, the last is held out: a candidate is fitted on the others and predicts it from
+rest, a drive it never saw (what a user does with the model). With one record, its last `VALIDATION_FRACTION` of the
+time is held out: the candidate is fitted on the beginning and predicts the end continuing from the state the
+beginning leaves (`fitting.predict(..., history=...)`), so a model that only interpolates the training samples (an
+over-fitted creep or resonance) is caught where the record goes on. The structure chosen is then fitted again on
+every record.
+
+**The rule.** Each candidate's residuals on the validation samples are divided by the measurement noise of their
+channel (`estimate_noise_std`, white part; the channel's range / 1000 where a record has no measurable noise), so
+the score $s = \sqrt{\overline{(e/\sigma)^2}}$ is 1 for a model that predicts to the noise. Scores differ by chance
+too: the validation samples are one realisation of the noise, and residuals of a misfit are correlated over time. So
+the difference of two candidates' mean squared scores is judged with its standard error from `BLOCKS` contiguous
+blocks of the validation samples (block means allow for correlated residuals; the two candidates share the noise, so
+the paired difference is far sharper than either score's own error). Kept: the candidate with the fewest fitted
+parameters whose mean squared score exceeds the best's by at most `Z` standard errors of that difference; among
+those, the lowest score. A more complex structure is kept only when the data say it predicts better.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from piezojax import PiezojaxValueError
+
+from .._data import Dataset, Experiment
+from .._predict import predict
+from .._problem import estimate_noise_std
+
+VALIDATION_FRACTION = 0.3
+"""The held-out end of a single record."""
+BLOCKS = 20
+"""Contiguous blocks of the validation samples for the standard error of a difference of scores."""
+Z = 2.0
+"""Standard errors within which a simpler candidate counts as good as the best."""
+MIN_VALIDATION_SAMPLES = 200
+
+
+@dataclasses.dataclass(frozen=True)
+class Split:
+    """The training records and the validation records, each with the records run before it (its history)."""
+
+    training: Dataset
+    validation: tuple[tuple[Experiment, tuple[Experiment, ...]], ...]
+    description: str
+
+
+def split(dataset: Dataset) -> Split:
+    """The identification's split of `dataset` (see the module docstring)."""
+    if len(dataset) >= 2:
+        *train, held = list(dataset)
+        return Split(Dataset(train), ((held, ()),),
+                     f"fitted on {', '.join(e.name for e in train)}; validated on {held.name} (predicted from rest)")
+    (e,) = dataset
+    cut = e.t[0] + (1 - VALIDATION_FRACTION) * (e.t[-1] - e.t[0] + e.dt)
+    head, tail = e.slice(None, cut), e.slice(cut, None)
+    if tail.n < MIN_VALIDATION_SAMPLES:
+        raise PiezojaxValueError(f"{e.name}: a record of {e.n} samples is too short to identify a structure: its last "
+                                 f"{VALIDATION_FRACTION:.0%} (the validation) needs {MIN_VALIDATION_SAMPLES} samples")
+    return Split(Dataset([head]), ((tail, (head,)),),
+                 f"fitted on {e.name} before t = {cut:.6g} s; validated on the rest of it (predicted after the "
+                 "beginning)")
+
+
+def scaled_errors(model, predictor, validation, targets) -> np.ndarray:
+    """The validation residuals of `model`, each divided by its channel's noise, in time order per record and
+    channel, concatenated; NaN where the model's prediction is not finite."""
+    out = []
+    for exp, history in validation:
+        pred = predict(model, exp, predictor=predictor, history=history, check_finite=False)
+        for c in targets:
+            if not exp.has(c):
+                continue
+            measured = np.asarray(exp[c], float)
+            sigma = estimate_noise_std(measured)
+            floor = 1e-3 * float(np.ptp(measured)) or 1.0
+            sigma = sigma if sigma > 1e-9 * float(np.max(np.abs(measured))) else floor
+            out.append((np.asarray(pred[c], float) - measured) / sigma)
+    return np.concatenate(out)
+
+
+def score(errors: np.ndarray) -> float:
+    """$\\sqrt{\\overline{(e/\\sigma)^2}}$ (inf when a residual is not finite)."""
+    return float(np.sqrt(np.mean(errors**2))) if np.all(np.isfinite(errors)) else np.inf
+
+
+def _block_means(x: np.ndarray) -> np.ndarray:
+    return np.array([b.mean() for b in np.array_split(x, min(BLOCKS, x.size))])
+
+
+def select(errors: list[np.ndarray], sizes: list[int]) -> tuple[int, list[bool]]:
+    """The index of the candidate kept (the rule of the module docstring), and per candidate whether it is within
+    the best's uncertainty. `errors`: each candidate's `scaled_errors` (the same samples); `sizes`: their numbers of
+    fitted parameters."""
+    scores = [score(e) for e in errors]
+    if not any(np.isfinite(scores)):
+        raise PiezojaxValueError("no candidate structure predicts the validation data with finite values")
+    best = int(np.nanargmin(scores))
+    within = []
+    for e, s in zip(errors, scores):
+        if not np.isfinite(s):
+            within.append(False)
+            continue
+        d = _block_means(e**2 - errors[best] ** 2)
+        se = float(np.std(d, ddof=1) / np.sqrt(d.size)) if d.size > 1 else 0.0
+        within.append(bool(np.mean(d) <= Z * se))
+    kept = min((i for i in range(len(errors)) if within[i]), key=lambda i: (sizes[i], scores[i]))
+    return kept, within
