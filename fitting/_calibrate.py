@@ -118,7 +118,7 @@ class Calibration:
 
 
 def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool = True, log: Callable = silent,
-              interrupted: Callable[[], bool] = lambda: False) -> Calibration:
+              interrupted: Callable[[], bool] = lambda: False, refine_rounds: bool = True) -> Calibration:
     """Calibrate the model of `config` on `dataset`: what `piezojax fit` does, without reading or writing files.
 
     The data are checked (records long enough, every fitted channel present and varying, enough memory), the
@@ -135,6 +135,8 @@ def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool =
     - `progress`: the solver's progress lines on stderr.
     - `log`: called with each line the command line prints (`log(message, warning=False)`); silent by default.
     - `interrupted`: whether an interrupt arrived that no exception carried (the command line's signal record).
+    - `refine_rounds`: run the refinement rounds after the fit (default; `False`: the fit alone, as the structure
+      search fits its candidates).
 
     **Returns:** a `Calibration`; `.result` is the `FitResult`, `.save(path)` writes the folder `piezojax predict`
     reads. Bad data or options raise one `PiezojaxValueError`.
@@ -172,7 +174,7 @@ def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool =
                     progress=progress, method=config.method)
     result = fit(starts[0], dataset, starts=starts if len(starts) > 1 else None, **fit_args)
     reseeded = None
-    if result.code != "interrupted":
+    if result.code != "interrupted" and refine_rounds:
         result, reseeded = refine(config, result, dataset, free, fit_args, log=log, interrupted=interrupted)
     other = []
     try:

@@ -84,8 +84,8 @@ def _fleet_step(solver, window, max_rejections, statics, arrays, carry):
     """One iteration of every actuator of a batch: the compiled `step` that `iterate` takes too, here with one
     problem per row and the model linearised at each trial point; `fit_fleet` dispatches it `steps_per_call` times
     without waiting for the device, then reads the verdicts."""
-    carry, _ = step(solver, statics, carry, jnp.zeros(carry.y.shape[:1], bool), rows=arrays, linearise=True,
-                    window=window, max_rejections=max_rejections)
+    carry, _ = step(solver, statics, carry, None, rows=arrays, linearise=True, window=window,
+                    max_rejections=max_rejections)
     return carry
 
 

@@ -65,8 +65,9 @@ class ActuatorInverse(eqx.Module):
     def __call__(self, displacement: SignalLike, dt: ArrayLike, hold: str = "zoh") -> Signal:
         """The voltage samples for the desired `displacement` [m] (1-D, real, finite), sample step `dt` [s] and the
         `hold` the actuator will be simulated (or driven) with. **Returns:** voltage [V], the shape of
-        `displacement`. An actuator's input `delay` is undone by reading the voltage that much ahead (its last
-        sample held), so the last `delay` of the record is not compensated."""
+        `displacement`. An actuator's input `delay` is undone by reading the voltage that much ahead (its monotone
+        interpolant, so within the drive range; the last sample held, so the last `delay` of the record is not
+        compensated; a fractional delay smooths the voltage slightly, read between samples twice)."""
         if hold not in ("zoh", "foh"):
             raise PiezojaxValueError(f'`hold` must be "zoh" or "foh", got {hold!r}')
         dtype = module_float_dtype(self, displacement, dt)
@@ -77,7 +78,7 @@ class ActuatorInverse(eqx.Module):
         if m.actuator.delay is None:
             return v
         ahead = check_positive(m.actuator.delay.time, "delay.time", allow_zero=True) / dt
-        return delay_signal(v[::-1], ahead)[::-1]
+        return m._clip(delay_signal(v[::-1], ahead)[::-1])
 
     def _voltage(self, target: Array, dt: Array, hold: str) -> Array:
         m, dtype = self, target.dtype

@@ -1,4 +1,4 @@
-"""`pj.Delay`, a dead time of fractional samples: against scipy's cubic Hermite interpolant, exact at whole
+"""`pj.Delay`, a dead time of fractional samples: against scipy's monotone cubic interpolant, exact at whole
 samples, continuously differentiable in the delay (finite differences), in an `Actuator` and undone by its inverse."""
 
 import equinox as eqx
@@ -18,16 +18,24 @@ U = np.sin(2 * np.pi * 3 * T) + 0.4 * np.sin(2 * np.pi * 17 * T + 0.3)
 
 
 @pytest.mark.parametrize("samples", [0.0, 1.0, 3.0, 0.25, 2.5, 7.8])
-def test_delay_is_the_catmull_rom_interpolant_read_late(samples):
+def test_delay_is_the_monotone_cubic_interpolant_read_late(samples):
     y = np.asarray(pj.Delay(samples * DT)(U, DT))
-    # an independent reference: scipy's cubic Hermite spline with central-difference slopes (Catmull-Rom)
-    slopes = np.gradient(U, DT)
-    spline = scipy.interpolate.CubicHermiteSpline(T, U, slopes)
-    inside = slice(int(np.ceil(samples)) + 3, -3)  # away from the held ends, where the slopes are one-sided
+    # an independent reference: scipy's PCHIP (Fritsch-Carlson slopes; its end slopes differ from a held end)
+    spline = scipy.interpolate.PchipInterpolator(T, U)
+    inside = slice(int(np.ceil(samples)) + 3, -3)
     np.testing.assert_allclose(y[inside], spline(T[inside] - samples * DT), rtol=0, atol=1e-12)
     if samples == int(samples):  # a whole number of samples: the samples themselves, the first held before
         k = int(samples)
         np.testing.assert_allclose(y, np.concatenate([np.full(k, U[0]), U[: U.size - k]]), rtol=0, atol=1e-14)
+
+
+def test_a_delayed_step_does_not_overshoot():
+    """A hysteresis operator remembers every extreme of its input: a step read between samples stays within the
+    step's levels (a Catmull-Rom interpolant would read 106.25 and -6.25 here)."""
+    step = np.r_[np.zeros(5), np.full(5, 100.0)]
+    for d in (0.5, 1.5, 2.25):
+        y = np.asarray(pj.Delay(d * DT)(step, DT))
+        assert y.min() >= 0.0 and y.max() <= 100.0 and np.all(np.diff(y) >= 0)
 
 
 def test_delay_is_differentiable_in_its_time_across_whole_samples():
@@ -85,6 +93,9 @@ def test_an_actuators_delay_reads_its_voltage_late_and_its_inverse_reads_ahead()
     without = error(plain, plain.inverse(0.0, 200.0)(target, DT))
     ignored = error(late, plain.inverse(0.0, 200.0)(target, DT))
     assert with_delay < 1.1 * without and ignored > 10 * with_delay
+    # read ahead, the voltage stays within the drive limits
+    voltage = np.asarray(_actuator(pj.Delay(1.5 * DT)).inverse(0.0, 100.0)(target, DT))
+    assert voltage.min() >= 0.0 and voltage.max() <= 100.0
 
 
 # ------------------------------------------------------------------------------------ in a CONFIG, fitted
@@ -107,7 +118,8 @@ def _late_plant_records(delay):
 
 def test_a_config_fits_the_input_delay_with_the_other_parameters(tmp_path):
     dataset, dt = _late_plant_records(2.6e-3)
-    config = fitting.parse_config(CONFIG + "\n[input]\ndelay = true\n", "late.toml")
+    config = fitting.parse_config(CONFIG.replace("max_steps = 100", "max_steps = 300") + "\n[input]\ndelay = true\n",
+                                  "late.toml")
     assert "delay.time" in config.default_free() and "[input] delay" in config.missing_values()
     cal = fitting.calibrate(config, dataset, progress=False)
     assert cal.result.success
@@ -120,7 +132,8 @@ def test_a_config_fits_the_input_delay_with_the_other_parameters(tmp_path):
 
 
 @pytest.mark.parametrize("text, message", [
-    ("[input]\ndelay = -1e-3\n", r"\[input\] delay: must be true .* a number of seconds >= 0"),
+    ("[input]\ndelay = -1e-3\n", r"\[input\] delay: must be true .* a number of seconds > 0"),
+    ("[input]\ndelay = 0\n", r"\[input\] delay: must be true .* a number of seconds > 0"),
     ("[input]\ndelay = \"late\"\n", r"\[input\] delay: must be true"),
     ("[input]\nlatency = 1e-3\n", r"unknown key 'latency'.*delay"),
 ])

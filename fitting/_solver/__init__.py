@@ -19,6 +19,7 @@ from .iteration import (
     linearise_one as linearise_one,
     reject as reject,
     rejected as rejected,
+    select_rows as select_rows,
     start as start,
     step as step,
     stop as stop,

@@ -76,9 +76,10 @@ def rejected(solver: AbstractNormalSolver, c: Carry, *, ftol, window: int, max_r
 def iteration(solver: AbstractNormalSolver, core: ProblemCore, c: Carry, refused, *, linearise: bool, window: int,
               max_rejections: int) -> tuple[Carry, Trial]:
     """One iteration of one start (a stopped one stays as it is): `(carry, trial)`. A `refused` start takes no
-    trial (the model refused its trial point: `rejected`). With `linearise`, the model is linearised at the trial
-    point and an accepted start's `lin` is complete; without, only its residuals are evaluated and an accepted
-    start's `g`, `h` are still those of its last point (the caller relinearises it, and sets `finite`)."""
+    trial (the model refused its trial point: `rejected`; `None`: none is). With `linearise`, the model is
+    linearised at the trial point and an accepted start's `lin` is complete; without, only its residuals are
+    evaluated and an accepted start's `g`, `h` are still those of its last point (the caller relinearises it, and
+    sets `finite`)."""
     ftol = solver.ftol
 
     def evaluate(y):
@@ -88,7 +89,7 @@ def iteration(solver: AbstractNormalSolver, core: ProblemCore, c: Carry, refused
         return core.residuals(y), None
 
     running = c.running
-    trial, new_state = solver.step(evaluate, c.y, c.lin, c.state, running & ~refused)
+    trial, new_state = solver.step(evaluate, c.y, c.lin, c.state, running if refused is None else running & ~refused)
     terminate = solver.terminate(c.y, c.lin, trial, new_state)
     g, h, finite = trial.aux if linearise else (c.lin.g, c.lin.h, jnp.asarray(True))
     take = trial.accept & trial.ok
@@ -100,9 +101,11 @@ def iteration(solver: AbstractNormalSolver, core: ProblemCore, c: Carry, refused
     if linearise:
         state = _select(take, solver.relinearise(state, lin), state)
     out = Carry(jnp.where(take, trial.y, c.y), lin, state, book, c.steps + running.astype(jnp.int32))
-    out = _select(refused, rejected(solver, c, ftol=ftol, window=window, max_rejections=max_rejections), out)
+    if refused is not None:
+        out = _select(refused, rejected(solver, c, ftol=ftol, window=window, max_rejections=max_rejections), out)
+        take = take & ~refused
     # the step itself stays inside (an output would change how XLA fuses y + step, e.g. into an FMA)
-    return out, Trial(None, trial.y, None, trial.cost, take & ~refused, trial.ok)
+    return out, Trial(None, trial.y, None, trial.cost, take, trial.ok)
 
 
 @eqx.filter_jit
@@ -110,14 +113,16 @@ def step(solver: AbstractNormalSolver, core: ProblemCore, carry: Carry, refused,
          window: int, max_rejections: int) -> tuple[Carry, Trial]:
     """`iteration` for every start of `carry` (leading axis): one compiled step. `rows` None: one problem `core`
     for every start (`iterate`); else one problem per row (`fit_fleet`): `rows` holds the arrays that differ by row
-    (stacked on the leading axis) and `core` the rest, `eqx.combine(rows[i], core)` row `i`'s problem."""
+    (stacked on the leading axis) and `core` the rest, `eqx.combine(rows[i], core)` row `i`'s problem. `refused`:
+    per start, whether the model refused its trial point, or `None` (none did)."""
 
     def one(row, c, refused):
         problem = core if row is None else eqx.combine(row, core)
         return iteration(solver, problem, c, refused, linearise=linearise, window=window,
                          max_rejections=max_rejections)
 
-    return over_starts(one, (None if rows is None else 0, 0, 0), carry.y.shape[0])(rows, carry, refused)
+    axes = (None if rows is None else 0, 0, None if refused is None else 0)
+    return over_starts(one, axes, carry.y.shape[0])(rows, carry, refused)
 
 
 @eqx.filter_jit
@@ -127,10 +132,11 @@ def reject(solver: AbstractNormalSolver, before: Carry, after: Carry, mask, *, w
     undone), else `after`."""
     undone = jax.vmap(lambda c: rejected(solver, c, ftol=solver.ftol, window=window,
                                          max_rejections=max_rejections))(before)
-    return _select_rows(mask, undone, after)
+    return select_rows(mask, undone, after)
 
 
-def _select_rows(mask, new, old):
+def select_rows(mask, new, old):
+    """Per start (leading axis): `new` where `mask`, else `old`."""
     return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
@@ -138,8 +144,8 @@ def _select_rows(mask, new, old):
 def relinearised(solver: AbstractNormalSolver, carry: Carry, g, h, mask) -> Carry:
     """Per start where `mask`: the linearisation's `g`, `h` replaced (formed at its new accepted point) and the
     solver's state updated (`solver.relinearise`)."""
-    lin = _select_rows(mask, Linearisation(carry.lin.r, carry.lin.cost, g, h), carry.lin)
-    state = _select_rows(mask, eqx.filter_vmap(solver.relinearise)(carry.state, lin), carry.state)
+    lin = select_rows(mask, Linearisation(carry.lin.r, carry.lin.cost, g, h), carry.lin)
+    state = select_rows(mask, eqx.filter_vmap(solver.relinearise)(carry.state, lin), carry.state)
     return Carry(carry.y, lin, state, carry.book, carry.steps)
 
 

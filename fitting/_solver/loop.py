@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array
 
 from .._problem import ProblemCore, linearise, model_error
-from .iteration import Carry, reject, relinearised, start, step, stop
+from .iteration import Carry, reject, relinearised, select_rows, start, step, stop
 from .outcomes import RESULTS, Verdict, result_names, verdict_of
 from .progress import AbstractProgressMeter, Progress
 from .solvers import AbstractNormalSolver, Linearisation, Trial
@@ -20,10 +20,7 @@ from .stopping import outpaced
 # ---------------------------------------------------------------------------------------------------- the loop
 
 
-@jax.jit
-def _where(mask, new, old):
-    """Per start (leading axis): `new` where `mask`, else `old` (one compiled call for a whole pytree)."""
-    return jtu.tree_map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+_where = jax.jit(select_rows)  # one compiled call for a whole pytree
 
 
 @eqx.filter_jit
@@ -116,15 +113,22 @@ def _trials(solver, core: ProblemCore, carry: Carry, running: np.ndarray, window
     refused = _refused_trials(solver, core, carry, running, window, max_rejections) if n_starts > 1 else running.copy()
     if not refused.any():  # raised only batched: every running start's trial counts as refused
         refused = running.copy()
+    if not (running & ~refused).any():
+        return (*_no_trial(solver, carry, refused, window, max_rejections), refused, message)
     try:
         out = step(solver, core, carry, jnp.asarray(refused), **kw)
         jax.block_until_ready(out)
     except eqx.EquinoxRuntimeError:  # no trial taken: every running start's trial counts as refused
         refused = running.copy()
-        no = jnp.zeros((n_starts,), bool)
-        out = (reject(solver, carry, carry, jnp.asarray(refused), window=window, max_rejections=max_rejections),
-               Trial(None, carry.y, None, carry.lin.cost, no, ~no))
+        out = _no_trial(solver, carry, refused, window, max_rejections)
     return *out, refused, message
+
+
+def _no_trial(solver, carry: Carry, refused: np.ndarray, window: int, max_rejections: int) -> tuple[Carry, Trial]:
+    """Every start where `refused` takes a rejected trial (`rejected`), without evaluating the model."""
+    no = jnp.zeros((refused.shape[0],), bool)
+    return (reject(solver, carry, carry, jnp.asarray(refused), window=window, max_rejections=max_rejections),
+            Trial(None, carry.y, None, carry.lin.cost, no, ~no))
 
 
 def _runs(carry: Carry, histories, history_steps, verdicts, fresh, *, solver, window: int, max_steps: int
@@ -174,11 +178,13 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
     meter_state = meter.init(label, n_starts)
     t0 = time.perf_counter()
     model_errors = [""] * n_starts  # per start, the last runtime check the model raised at its trial point
+    pending = None  # during an iteration: the state before it, restored if Ctrl-C arrives before it is complete
     try:
         for k in range(1, max_steps + 1):
             if not running.any():
                 break
             before, fresh_before = carry, fresh.copy()
+            pending = (before, fresh_before, k)
             carry, trial, refused, message = _trials(solver, core, carry, running, window, max_rejections)
             for i in np.flatnonzero(refused):
                 model_errors[i] = message
@@ -222,10 +228,18 @@ def iterate(solver: AbstractNormalSolver, core: ProblemCore, u0, *, max_steps: i
                 if beaten:
                     carry = stop(carry, jnp.asarray(np.isin(np.arange(n_starts), list(beaten))), RESULTS.outpaced)
             running = np.asarray(carry.running)
+            pending = None
             best = min(hh[-1] for hh in histories)
             meter_state = meter.step(meter_state, Progress(label, k, best, len(histories[0]) - 1, int(running.sum()),
                                                            n_starts, time.perf_counter() - t0))
     except KeyboardInterrupt:
+        if pending is not None:  # the interrupted iteration is undone: each start at its last complete point
+            carry, fresh, k = pending
+            for hs, steps_of in zip(histories, history_steps):
+                while steps_of[-1] == k:
+                    hs.pop()
+                    steps_of.pop()
+            running = np.asarray(carry.running)
         for i in np.flatnonzero(running):
             verdicts[i] = verdict_of("running", solver=solver, window=window, since=0, max_steps=max_steps,
                                      interrupted=True)

@@ -140,9 +140,11 @@ _STATE_KEYS = ("offset", "prehistory")
 _INPUT_KEYS = ("delay",)
 
 
-def _switches(raw: Mapping, source: str, table: str, keys: tuple[str, ...], what: str) -> tuple[dict, ConfigTable]:
+def _switches(raw: Mapping, source: str, table: str, keys: tuple[str, ...], *, positive: bool = False
+              ) -> tuple[dict, ConfigTable]:
     """A table of switches (`[state]`, `[input]`): each key `true` (in the model, started from the data), `false`
-    (not in the model) or a number (in the model, this start value; `what` says which numbers)."""
+    (not in the model) or a number (in the model, this start value; > 0 with `positive`)."""
+    what = "a number of seconds > 0" if positive else "a number"
     st = ConfigTable(source, table, raw.get(table, {}), keys)
     if "kind" in st.data:
         raise st.error(f"unknown key 'kind'; allowed keys: {', '.join(keys)}", "kind")
@@ -152,7 +154,7 @@ def _switches(raw: Mapping, source: str, table: str, keys: tuple[str, ...], what
             continue
         value = st.data[key]
         if not (isinstance(value, bool) or finite_number(value)) or (
-                what != "a number" and not isinstance(value, bool) and value < 0):
+                positive and not isinstance(value, bool) and not value > 0):
             raise st.error(f"must be true (fitted from the data), false (none) or {what} (its start value), got "
                            f"{value!r}", key)
         out[key] = value if isinstance(value, bool) else float(value)
@@ -164,7 +166,7 @@ def parse_state(raw: Mapping, source: str) -> dict:
     (not in the model) or a number (in the model, this start value)."""
     if "state" not in raw:
         return {}
-    out, st = _switches(raw, source, "state", _STATE_KEYS, "a number")
+    out, st = _switches(raw, source, "state", _STATE_KEYS)
     h = raw.get("hysteresis", {})
     if out.get("prehistory", False) is not False and h.get("kind", "none") == "none":
         raise st.error("a prehistory sets the hysteresis' remanent state; the model has no hysteresis", "prehistory")
@@ -173,8 +175,9 @@ def parse_state(raw: Mapping, source: str) -> dict:
 
 def parse_input(raw: Mapping, source: str) -> dict:
     """The `[input]` table: `delay`, the dead time between the recorded voltage and the one the actuator sees
-    (`pj.Delay`): `True` (fitted from a data-driven start), `False` (none) or a number of seconds >= 0 (its start)."""
-    return _switches(raw, source, "input", _INPUT_KEYS, "a number of seconds >= 0")[0] if "input" in raw else {}
+    (`pj.Delay`): `True` (fitted from a data-driven start), `False` (none) or a number of seconds > 0 (its start: a
+    delay fitted under `pj.Positive` cannot leave 0)."""
+    return _switches(raw, source, "input", _INPUT_KEYS, positive=True)[0] if "input" in raw else {}
 
 
 class _WithState(ModelKind):
