@@ -46,12 +46,15 @@ def test_every_structure_the_search_writes_is_a_valid_config():
         S.fixed_tables('[observer]\nkind = "sensor_layer"\n')
 
 
-def test_the_split_holds_out_the_last_record_or_the_end_of_one():
-    two = split(_records(2))
-    assert two.training.names == ("r0",) and [e.name for e, _ in two.validation] == ["r1"]
-    one = split(_records(1))
-    (tail, (head,)), = one.validation
-    assert head.n + tail.n == 1000 and tail.n == 300 and one.training[0].n == head.n
+def test_the_split_holds_out_the_end_of_every_record():
+    parts = split(_records(2))
+    assert [e.n for e in parts.training] == [700, 700]
+    assert [(tail.n, history[0].n) for tail, history in parts.validation] == [(300, 700), (300, 700)]
+    assert parts.validation[0][1][0].name == parts.training[0].name  # each end continues its own beginning
+    short = fitting.Dataset([*_records(1), *(e.slice(None, 0.5, name="short") for e in _records(1))])
+    parts = split(short)  # a record too short to leave a validation end is fitted whole
+    assert [e.n for e in parts.training] == [700, 500] and len(parts.validation) == 1 and "short whole" in (
+        parts.description)
     with pytest.raises(pj.PiezojaxValueError, match="too short"):
         split(_records(1, n=500))
 

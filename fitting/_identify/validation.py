@@ -1,12 +1,16 @@
 r"""How the identification judges a structure: on data its fit did not see (`Split`), by its validation error over
 the measurement noise (`score`), and which structure it keeps (`select`).
 
-**The split.** With several records, the last is held out: a candidate is fitted on the others and predicts it from
-rest, a drive it never saw (what a user does with the model). With one record, its last `VALIDATION_FRACTION` of the
-time is held out: the candidate is fitted on the beginning and predicts the end continuing from the state the
-beginning leaves (`fitting.predict(..., history=...)`), so a model that only interpolates the training samples (an
-over-fitted creep or resonance) is caught where the record goes on. The structure chosen is then fitted again on
-every record.
+**The split.** Every record's last `VALIDATION_FRACTION` of the time is held out: a candidate is fitted on the
+beginnings of all the records and predicts each end continuing from the state its beginning leaves
+(`fitting.predict(..., history=...)`), so a model that only interpolates the training samples (an over-fitted creep
+or resonance) is caught where the records go on, and every kind of excitation the user recorded is in the fit.
+Holding out whole records instead leaves each candidate without that record's excitation: measured on a plant-study
+PI draw (training records of nested triangles and of held steps), fitted on the triangles and validated on the
+steps, every candidate scored 3–30× the noise in validation against about 1× in training (the triangles alone do
+not show the creep's time constants), and the structure kept predicted the held-out drives at 1.24× and 1.85× the
+noise. A record too short to leave `MIN_VALIDATION_SAMPLES` at its end is fitted whole. The structure chosen is then
+fitted again on every record, whole.
 
 **The rule.** Each candidate's residuals on the validation samples are divided by the measurement noise of their
 channel (`estimate_noise_std`, white part; the channel's range / 1000 where a record has no measurable noise), so
@@ -49,19 +53,24 @@ class Split:
 
 def split(dataset: Dataset) -> Split:
     """The identification's split of `dataset` (see the module docstring)."""
-    if len(dataset) >= 2:
-        *train, held = list(dataset)
-        return Split(Dataset(train), ((held, ()),),
-                     f"fitted on {', '.join(e.name for e in train)}; validated on {held.name} (predicted from rest)")
-    (e,) = dataset
-    cut = e.t[0] + (1 - VALIDATION_FRACTION) * (e.t[-1] - e.t[0] + e.dt)
-    head, tail = e.slice(None, cut), e.slice(cut, None)
-    if tail.n < MIN_VALIDATION_SAMPLES:
-        raise PiezojaxValueError(f"{e.name}: a record of {e.n} samples is too short to identify a structure: its last "
-                                 f"{VALIDATION_FRACTION:.0%} (the validation) needs {MIN_VALIDATION_SAMPLES} samples")
-    return Split(Dataset([head]), ((tail, (head,)),),
-                 f"fitted on {e.name} before t = {cut:.6g} s; validated on the rest of it (predicted after the "
-                 "beginning)")
+    training, validation, whole = [], [], []
+    for e in dataset:
+        cut = e.t[0] + (1 - VALIDATION_FRACTION) * (e.t[-1] - e.t[0] + e.dt)
+        if e.n - int(np.count_nonzero(e.t < cut - 1e-6 * e.dt)) < MIN_VALIDATION_SAMPLES:
+            training.append(e)
+            whole.append(e.name)
+            continue
+        head, tail = e.slice(None, cut), e.slice(cut, None)
+        training.append(head)
+        validation.append((tail, (head,)))
+    if not validation:
+        raise PiezojaxValueError(f"the records are too short to identify a structure: the last "
+                                 f"{VALIDATION_FRACTION:.0%} of at least one (the validation) needs "
+                                 f"{MIN_VALIDATION_SAMPLES} samples")
+    return Split(Dataset(training), tuple(validation),
+                 f"fitted on the first {1 - VALIDATION_FRACTION:.0%} of each record"
+                 + (f" ({', '.join(whole)} whole)" if whole else "")
+                 + f"; validated on the last {VALIDATION_FRACTION:.0%} (predicted after the beginning)")
 
 
 def scaled_errors(model, predictor, validation, targets) -> np.ndarray:

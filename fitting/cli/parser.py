@@ -66,8 +66,8 @@ examples:
   piezojax fit --auto run1.csv --config units.toml --out fits/auto   (CONFIG's tables fixed, the rest searched)
 
 With --auto the model's structure is searched (hysteresis kind, creep, dynamics, prehistory, input delay), each
-candidate fitted on part of the data and judged on the rest (the last file held out, or the end of a single
-record); the simplest within the best's uncertainty is fitted on every file and written to DIR, its config.toml
+candidate fitted on the first 70 % of every file and judged on the rest (predicted after the beginning); the
+simplest within the best's uncertainty is fitted on every file and written to DIR, its config.toml
 the structure chosen, the ranking in report.txt and result.json ("identification").
 
 DIR receives result.json (metrics per experiment and channel, parameters with standard errors, convergence),
