@@ -9,4 +9,4 @@ from .search import (
     identify as identify,
 )
 from .structures import HYSTERESIS_KINDS as HYSTERESIS_KINDS, Structure as Structure
-from .validation import BLOCKS as BLOCKS, VALIDATION_FRACTION as VALIDATION_FRACTION, Z as Z, select as select
+from .validation import VALIDATION_FRACTION as VALIDATION_FRACTION, Z as Z, select as select

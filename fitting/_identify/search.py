@@ -35,7 +35,7 @@ from .structures import (
     fixed_tables,
     hysteresis_neighbours,
 )
-from .validation import BLOCKS, Split, Z, scaled_errors, score, select, split
+from .validation import Split, Z, scaled_errors, score, select, split
 
 START = Structure("prandtl_ishlinskii", 8, creep="kelvin_voigt", creep_order=1, creep_structure="series")
 """Where the search starts: PI(8) with one Kelvin–Voigt lag in series, no dynamics."""
@@ -108,7 +108,7 @@ class Identification:
                 "split": self.split, "seconds": round(self.seconds, 3), "final_seconds": round(self.final_seconds, 3),
                 "chosen": self.chosen.structure.label(),
                 "rule": f"the fewest fitted parameters whose mean squared validation error over the noise exceeds "
-                        f"the best's by at most {Z:g} standard errors of the difference ({BLOCKS} blocks)"}
+                        f"the best's by at most {Z:g} standard errors of the difference (its noise part)"}
 
     def write_files(self, folder, *, figures: bool = True, **summary) -> None:
         """The calibration's fit folder files (`Calibration.write_files`; its `config.toml` the structure kept),
