@@ -19,6 +19,8 @@
   `FitError` (`throw=True`) and `PrecisionWarning` (a fit in single precision).
 - Fleets: `fit_fleet` calibrates many actuators of one structure, each on its own records, in one compiled loop
   (`vmap` over the fleet, sharded over devices), returning a `FleetResult`.
+- A record from another occasion: `warm_up` estimates its sensors' zeros and the model's initial state from a
+  window at its start (`WarmUp`), as `piezojax predict --warm-up` does.
 - Results: `FitResult` (metrics, standard errors, correlations, report, figures, atomic save), `load_model`.
 - Figures (engineering units, no pyplot state): `plot_timeseries`, `plot_loops`, `plot_parameters`,
   `plot_convergence` (also `FitResult.plot(kind)`), `save_figures`.
@@ -62,6 +64,7 @@ _EXPORTS = {
         "NoProgressMeter", "Progress", "TextProgressMeter", "Trial", "TrustRegion", "Verdict",
     ),
     "._staged": ("staged_ivan2009",),
+    "._warm_up": ("WarmUp", "warm_up"),
 }
 _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -237,6 +238,48 @@ def test_predict_matches_direct_api(fitted, work, capsys):
     np.testing.assert_array_equal(written.t, exp.t)
     np.testing.assert_allclose(written["displacement"], y, rtol=1e-15, atol=0)
     assert direct["nrmse_percent"] < 0.05  # held out: the fitted model generalises
+
+
+def test_predict_warm_up_estimates_the_records_offset_and_prehistory(fitted, work, capsys):
+    # a record from another occasion: the sensor's zero moved by 0.2 um and the actuator was left at the remanent
+    # state of an excursion to -25 V (between two plays' thresholds, so the state identifies the excursion)
+    rc, out = fitted
+    d, _ = work
+    rng = np.random.default_rng(7)
+    n = 1500
+    t = np.arange(n) * DT
+    v = 40 * np.sin(2 * np.pi * 1.7 * t) * np.minimum(1, t / 0.2) + 10 * np.sin(2 * np.pi * 5.3 * t)
+    truth = eqx.tree_at(lambda a: (a.offset, a.prehistory), _truth(), (jnp.asarray(2e-7), jnp.asarray(-25.0)),
+                        is_leaf=lambda x: x is None)
+    y = np.asarray(truth.simulate(jnp.asarray(v), DT).displacement) + 1e-9 * rng.standard_normal(n)
+    fitting.save_experiment(fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y, name="day2"), d / "day2.csv")
+    capsys.readouterr()
+    plain, warmed = d / "pred_plain", d / "pred_warm"
+    assert main(["predict", str(out), str(d / "day2.csv"), "--out", str(plain)]) == 0
+    assert main(["predict", str(out), str(d / "day2.csv"), "--warm-up", "0.4", "--out", str(warmed)]) == 0
+    before = json.loads((plain / "metrics.json").read_text())
+    after = json.loads((warmed / "metrics.json").read_text())
+    assert before["warm_up"] is None
+    assert before["metrics"]["day2"]["displacement"]["rmse_over_noise"] > 50  # the offset dominates
+    est = after["warm_up"]["records"]["day2"]
+    assert after["warm_up"]["seconds"] == 0.4 and est["samples"] == 400
+    assert est["offsets"]["displacement"] == pytest.approx(2e-7, abs=5e-9)
+    assert est["prehistory"] == pytest.approx(-25.0, abs=1.0)
+    assert [c["time_constant"] for c in est["creep_free_response"]] == pytest.approx([TRUTH["tau"]], rel=0.05)
+    assert after["metrics"]["day2"]["displacement"]["rmse_over_noise"] < 1.5  # scored after the window only
+    # the same numbers from the library
+    fit = fitting.load_fit(out)
+    w = fitting.warm_up(fit.model, fitting.load_experiment(d / "day2.csv"), 0.4, predictor=fit.config.predictor())
+    assert w.prehistory == pytest.approx(est["prehistory"], rel=1e-12) and w.scored.sum() == n - 400
+    written = fitting.load_experiment(warmed / "day2.csv")
+    np.testing.assert_allclose(written["displacement"], w.predictions["displacement"], rtol=1e-14, atol=1e-20)
+    # a window that leaves nothing to score: one line, exit 2, nothing written
+    capsys.readouterr()
+    assert main(["predict", str(out), str(d / "day2.csv"), "--warm-up", "1.5", "--out", str(d / "p3")]) == 2
+    err = capsys.readouterr().err
+    assert "warm-up of 1.5 s" in err and "leaves 0" in err and not (d / "p3").exists()
+    with pytest.raises(pj.PiezojaxValueError, match="seconds > 0"):
+        fitting.warm_up(fit.model, fitting.load_experiment(d / "day2.csv"), -1.0)
 
 
 def test_simulate_with_given_parameters(work):

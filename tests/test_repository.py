@@ -336,6 +336,7 @@ FITTING_LAYERS = {
     "_refine": {"_config", "_problem", "_solve", "_solver"},
     "_calibrate": {"_config", "_data", "_problem", "_refine", "_results", "_solve", "files"},
     "_fit_folder": {"_config", "_data", "_problem", "_results"},
+    "_warm_up": {"_data", "_predict"},
     "_identify": {"_calibrate", "_config", "_data", "_predict", "_problem", "_refine", "files"},
     "cli": {"__init__", "_calibrate", "_config", "_data", "_identify", "_results", "files"},
     "__init__": set(),  # its lazy loading reaches every part by name, not by import

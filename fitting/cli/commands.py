@@ -125,15 +125,26 @@ def _cmd_predict(args) -> int:
         dataset, unit_warnings = _load_data(args.data, settings, args.group)
         results, metrics = [], {}
         history = _load_data(args.history, settings, args.group)[0] if args.history else ()
+        warmed = {}
         for exp in dataset:
-            preds = fitting.predict(model, exp, predictor=config.predictor(), history=history)
+            scored = np.ones(exp.n, bool)
+            if args.warm_up is not None:
+                w = fitting.warm_up(model, exp, args.warm_up, predictor=config.predictor(), history=history)
+                preds, scored, warmed[exp.name] = w.predictions, w.scored, w.summary()
+                if not all(np.all(np.isfinite(y)) for y in preds.values()):
+                    raise _error(f"{exp._label()}: the model's prediction is not finite")
+            else:
+                preds = fitting.predict(model, exp, predictor=config.predictor(), history=history)
             preds = {c: preds[c] for c in config.outputs}
             results.append((exp, preds))
             measured = [c for c in preds if exp.has(c)]
-            scored = exp.t >= args.score_from - 1e-6 * exp.dt if args.score_from is not None else slice(None)
-            if args.score_from is not None and np.count_nonzero(scored) < 2:
-                raise _error(f"{exp._label()}: --score-from {args.score_from:g} s leaves fewer than 2 samples of the "
-                             f"record [{exp.t[0]:.6g}, {exp.t[-1]:.6g}] s")
+            if args.score_from is not None:
+                scored = scored & (exp.t >= args.score_from - 1e-6 * exp.dt)
+            if np.count_nonzero(scored) < 2:
+                what = (f"--score-from {args.score_from:g} s leaves" if args.warm_up is None else
+                        f"--score-from {args.score_from:g} s after --warm-up {args.warm_up:g} s leave")
+                raise _error(f"{exp._label()}: {what} fewer than 2 samples of the record "
+                             f"[{exp.t[0]:.6g}, {exp.t[-1]:.6g}] s to score")
             if measured:
                 metrics[exp.name] = {c: fitting.error_metrics(preds[c][scored], exp[c][scored]) for c in measured}
         names = {}
@@ -155,6 +166,7 @@ def _cmd_predict(args) -> int:
             "data_settings": settings,
             "history": [str(Path(p).absolute()) for p in args.history or []],
             "score_from": args.score_from,
+            "warm_up": {"seconds": args.warm_up, "records": warmed} if args.warm_up is not None else None,
             "warnings": unit_warnings,
         })
         _check_interrupted()

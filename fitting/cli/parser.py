@@ -85,6 +85,7 @@ examples:
   piezojax predict fits/obs day2_*.mat --out predictions --overwrite
   piezojax predict fits/pi_creep test_7to10s.csv --history train_0to7s.csv --out predictions
   piezojax predict fits/pi_creep whole_record.csv --score-from 7.0 --out predictions
+  piezojax predict fits/pi_creep day2.csv --warm-up 1.0 --out predictions
 
 OUT is a folder with one CSV per input (t, v_in and the predicted channels on the input's time grid) and
 metrics.json; RMSE, NRMSE (% of the measured range) and the RMSE over the file's noise level are printed for the
@@ -188,6 +189,10 @@ def build_parser() -> argparse.ArgumentParser:
                       "a held-out DATA file continues: the model's state carries over; same sampling step")
     pred.add_argument("--score-from", metavar="T", type=float,
                       help="compute the errors only on samples with t >= T [s] (the predictions cover the whole file)")
+    pred.add_argument("--warm-up", metavar="SECONDS", type=float,
+                      help="a record from another occasion: estimate its sensors' zeros (an offset per measured "
+                      "channel) and the actuator's initial state (a prehistory excursion) from its first SECONDS, "
+                      "and score only after them (off by default; the estimates go to metrics.json)")
     _data_options(pred, "the fit (default: the fit's)")
 
     sim = sub.add_parser(
