@@ -118,7 +118,8 @@ class Calibration:
 
 
 def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool = True, log: Callable = silent,
-              interrupted: Callable[[], bool] = lambda: False, refine_rounds: bool = True) -> Calibration:
+              interrupted: Callable[[], bool] = lambda: False, refine_rounds: bool = True,
+              starts: Callable[[ModelConfig, Dataset], list] | None = None) -> Calibration:
     """Calibrate the model of `config` on `dataset`: what `piezojax fit` does, without reading or writing files.
 
     The data are checked (records long enough, every fitted channel present and varying, enough memory), the
@@ -137,6 +138,9 @@ def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool =
     - `interrupted`: whether an interrupt arrived that no exception carried (the command line's signal record).
     - `refine_rounds`: run the refinement rounds after the fit (default; `False`: the fit alone, as the structure
       search fits its candidates).
+    - `starts`: `starts(config, dataset)` returns the starts to fit together, models of the CONFIG's structure
+      reparametrised as `ModelConfig.starts` returns them (e.g. one warm-started from an earlier fit beside
+      `config.starts(dataset, cold_start=False)`); default: the data-driven starts, `config.starts(dataset)`.
 
     **Returns:** a `Calibration`; `.result` is the `FitResult`, `.save(path)` writes the folder `piezojax predict`
     reads. Bad data or options raise one `PiezojaxValueError`.
@@ -162,17 +166,19 @@ def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool =
     log("initial values from the data")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", StartWarning)
-        starts = config.starts(dataset)
+        made = config.starts(dataset) if starts is None else list(starts(config, dataset))
+    if not made:
+        raise PiezojaxValueError("`starts` returned no start")
     start_warnings = [str(w.message) for w in caught if issubclass(w.category, StartWarning)]
     for m in start_warnings:
         log(f"warning: {m}", warning=True)
     what = "Levenberg–Marquardt" if config.method == "levenberg_marquardt" else "trust region"
     log(f"{what} on {', '.join(free)} (first step compiles)")
-    starts = _affordable_starts(config, dataset, num_free, starts, log)
+    made = _affordable_starts(config, dataset, num_free, made, log, given=starts is not None)
     fit_args = dict(predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
                     smoothing=config.smoothing, max_steps=max_steps if max_steps is not None else config.max_steps,
                     progress=progress, method=config.method)
-    result = fit(starts[0], dataset, starts=starts if len(starts) > 1 else None, **fit_args)
+    result = fit(made[0], dataset, starts=made if len(made) > 1 else None, **fit_args)
     reseeded = None
     if result.code != "interrupted" and refine_rounds:
         result, reseeded = refine(config, result, dataset, free, fit_args, log=log, interrupted=interrupted)
@@ -200,7 +206,7 @@ def _check_targets(config: ModelConfig, dataset: Dataset) -> tuple[str, ...]:
     return targets
 
 
-def _affordable_starts(config, dataset, num_free: int, starts: list, log: Callable) -> list:
+def _affordable_starts(config, dataset, num_free: int, starts: list, log: Callable, given: bool = False) -> list:
     """`starts`, or only the first (the one closest to the data) when fitting them together would cost too much."""
     if len(starts) <= 1:
         return starts
@@ -209,7 +215,8 @@ def _affordable_starts(config, dataset, num_free: int, starts: list, log: Callab
         log(f"fitting only the start closest to the data: {len(starts)} starts together would need about "
             f"{need / 2**30:.1f} GiB")
         return starts[:1]
-    log(f"{len(starts)} starts (rule-based and joint cold start) fitted together; the best is kept")
+    log(f"{len(starts)} starts {'' if given else '(rule-based and joint cold start) '}fitted together; the best is "
+        "kept")
     return starts
 
 

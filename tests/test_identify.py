@@ -1,9 +1,12 @@
 """The structure search (`fitting.identify`, `piezojax fit --auto`): its candidates are valid CONFIGs, its split
-and selection rule, and an end-to-end search on a plant written without piezojax code."""
+and selection rule, the warm start of a candidate from its parent, and the command's arguments."""
 
 import dataclasses
 import itertools
 
+import equinox as eqx
+import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 import pytest
 
@@ -25,7 +28,8 @@ def test_every_structure_the_search_writes_is_a_valid_config():
     """Each neighbour of each stage, from a few structures, parses; its tables are the structure's; a base CONFIG's
     tables are kept and not written twice."""
     seeds = [S.Structure(), dataclasses.replace(S.Structure(), creep="kelvin_voigt", creep_structure="series",
-                                                dynamics=2), S.Structure("bouc_wen", creep="lag", prehistory=True)]
+                                                dynamics=2), S.Structure("bouc_wen", creep="lag", prehistory=True),
+             S.Structure("play", dynamics=1)]
     moves = (S.creep_neighbours, S.dynamics_neighbours, S.hysteresis_neighbours, S.deeper_creep, S.extra_neighbours)
     seen = set()
     for seed, move in itertools.product(seeds, moves):
@@ -38,7 +42,11 @@ def test_every_structure_the_search_writes_is_a_valid_config():
             assert cfg.creep == s.creep and (s.creep == "none" or cfg.creep_structure == s.creep_structure)
             assert ("delay.time" in cfg.default_free()) == s.delay
             assert ("prehistory" in cfg.default_free()) == s.prehistory
+            if s.dynamics:
+                o = cfg.dynamics_options
+                assert 2 * o.zero_pairs + o.real_zeros == s.zeros
     assert {s.hysteresis for s in seen} == set(S.HYSTERESIS_KINDS) and len(seen) > 20
+    assert {s.zeros for s in seen} == {0, 1, 2}  # a real zero after one pole, an antiresonance after a pair
     base = '[creep]\nkind = "lag"\nlags = 2\nstructure = "series"\n[fit]\nmax_steps = 50\n'
     cfg = fitting.parse_config(S.Structure(creep="kelvin_voigt", dynamics=2).toml(base), "b")
     assert cfg.creep == "lag" and cfg.max_steps == 50 and cfg.dynamics_order == 2
@@ -89,3 +97,59 @@ def test_fit_auto_arguments_are_checked(tmp_path, capsys):
     assert main(["fit", str(config), "a.csv", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     assert "use it with --auto" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_candidate_starts_from_its_parents_fitted_blocks():
+    """`warm_start`: the blocks a candidate shares with its parent (same type, shapes and creep structure) start
+    at the parent's fitted values, through the CONFIG's reparametrisation; the others keep their own start."""
+    from fitting._identify.search import shared_blocks, warm_start
+
+    t = np.arange(3000) * DT
+    v = 50 * np.sin(2 * np.pi * 2 * t) * np.minimum(1, t / 0.3)
+    rec = fitting.Experiment.from_arrays(t=t, v_in=v, displacement=1e-8 * v + 1e-9 * np.sin(9 * t), name="r")
+    parent = S.Structure("prandtl_ishlinskii", 4, creep="kelvin_voigt", creep_structure="series", dynamics=2)
+    pcfg = fitting.parse_config(parent.toml(), "parent")
+    fitted = pj.unwrap(pcfg.starts(fitting.Dataset([rec]))[0])
+    fitted = eqx.tree_at(lambda m: (m.hysteresis.weights, m.creep.time_constants, m.offset), fitted,
+                         (fitted.hysteresis.weights * 1.7, fitted.creep.time_constants * 3.0, jnp.asarray(2e-7)))
+    for child, shared, own in [
+        (dataclasses.replace(parent, dynamics=4), ("hysteresis", "creep", "offset"), ("dynamics",)),
+        (dataclasses.replace(parent, creep_structure="parallel"), ("hysteresis", "dynamics", "offset"), ("creep",)),
+        (dataclasses.replace(parent, hysteresis="play"), ("creep", "dynamics", "offset"), ("hysteresis",)),
+        (dataclasses.replace(parent, polynomial=2), ("creep", "dynamics", "offset"), ()),
+    ]:
+        cfg = fitting.parse_config(child.toml(), child.label())
+        start = cfg.starts(fitting.Dataset([rec]))[0]
+        warm = warm_start(cfg, start, fitted, shared_blocks(child, parent))
+        assert jtu.tree_structure(warm) == jtu.tree_structure(start)  # fitted together with the data-driven start
+        got, own_start = pj.unwrap(warm), pj.unwrap(start)
+        for name in shared:
+            for a, b in zip(jtu.tree_leaves(getattr(got, name)), jtu.tree_leaves(getattr(fitted, name))):
+                np.testing.assert_allclose(a, b, rtol=1e-12)
+        for name in own:
+            for a, b in zip(jtu.tree_leaves(getattr(got, name)), jtu.tree_leaves(getattr(own_start, name))):
+                np.testing.assert_allclose(a, b, rtol=1e-12)  # (through the reparametrisation and back)
+        if child.polynomial:  # the parent's operator inside the added output polynomial
+            np.testing.assert_allclose(got.hysteresis.hysteresis.weights, fitted.hysteresis.weights, rtol=1e-12)
+
+
+def test_calibrate_fits_the_starts_a_caller_makes():
+    """`calibrate(..., starts=fn)`: `fn(config, dataset)` makes the starts fitted together (here the rule-based
+    start alone, without the joint cold start); none is refused with one line."""
+    t = np.arange(1500) * DT
+    v = 40 * np.sin(2 * np.pi * 3 * t) * np.minimum(1, t / 0.2)
+    truth = pj.Actuator(pj.PrandtlIshlinskii(jnp.asarray([2e-8, 1e-8]), jnp.asarray([0.0, 15.0])))
+    y = np.asarray(truth.simulate(jnp.asarray(v), DT).displacement)
+    rec = fitting.Experiment.from_arrays(t=t, v_in=v, displacement=y + 1e-10 * np.sin(50 * t), name="r")
+    cfg = fitting.parse_config('[hysteresis]\nkind = "prandtl_ishlinskii"\nplays = 2\n[fit]\nmax_steps = 60\n', "c")
+    made = []
+
+    def own(config, dataset):
+        made.append((config, dataset))
+        return config.starts(dataset, cold_start=False)
+
+    cal = fitting.calibrate(cfg, rec, starts=own, progress=False, refine_rounds=False)
+    assert made[0][0] is cfg and [e.name for e in made[0][1]] == ["r"]
+    assert cal.result.starts is None and cal.result.success  # one start: no multi-start table
+    with pytest.raises(pj.PiezojaxValueError, match="returned no start"):
+        fitting.calibrate(cfg, rec, starts=lambda c, d: [], progress=False)

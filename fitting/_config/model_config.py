@@ -305,15 +305,15 @@ class ModelConfig:
             return self.constrain(self._assemble(None))
         return self.starts(dataset)[0]
 
-    def starts(self, dataset) -> list:
+    def starts(self, dataset, *, cold_start: bool = True) -> list:
         """Every data-driven start of the model, the one closest to the data first, each reparametrised as `build`
-        returns it: the kinds' rule-based starts, and, where the blocks allow it, the joint cold start
-        (`fitting.cold_start_actuator`; a PI surrogate for other hysteresis families). Each has the same structure,
-        so they can be fitted together (`fitting.fit(starts[0], ..., starts=starts)`): closest to the data is not
-        always the start that converges best. A cold start that fails (a degenerate record) is left out with a
-        `StartWarning`."""
+        returns it: the kinds' rule-based starts, and, where the blocks allow it and `cold_start` is true, the joint
+        cold start (`fitting.cold_start_actuator`; a PI surrogate for other hysteresis families). Each has the same
+        structure, so they can be fitted together (`fitting.fit(starts[0], ..., starts=starts)`): closest to the
+        data is not always the start that converges best. A cold start that fails (a degenerate record) is left out
+        with a `StartWarning`."""
         models = [self._assemble(StartData(self, dataset, use_cold_start=False))]
-        if self.model_kind.cold_start:
+        if self.model_kind.cold_start and cold_start:
             try:
                 data = StartData(self, dataset)
                 if data.cold_start() is not None:

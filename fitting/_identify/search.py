@@ -4,11 +4,14 @@ The search is greedy, by stages, each fitting the current structure's neighbours
 `select` keeps among them and the current one (`validation.py`): the dynamics (0, 1, 2, 4 poles; first, since a
 creep fitted without a resonance the data have bends to mimic it), the creep (none; Kelvin–Voigt or lag, in series
 or in parallel; logarithmic), the hysteresis kind (every kind of `HYSTERESIS_KINDS`, so each is fitted and ranked
-once), the creep again (for the kind kept), one more creep lag, then an output polynomial, a prehistory and an input
-delay one at a time. It starts from `START`. A candidate is fitted once (a stage that meets it again reuses its
-fit), without the refinement rounds (`calibrate(..., refine_rounds=False)`) and with at most
-`CANDIDATE_MAX_STEPS` steps. Finally the structure `select` keeps among every candidate is calibrated on every record
-with the whole pipeline (`fitting.calibrate`).
+once), the creep again (for the kind kept), one more creep lag, then an output polynomial, zeros of the dynamics, a
+prehistory and an input delay one at a time. It starts from `START`. A candidate is fitted once (a stage that
+meets it again reuses its fit), without the refinement rounds (`calibrate(..., refine_rounds=False)`) and with at most
+`CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the stage's current structure) for the
+blocks it shares with it (`warm_start`, `shared_blocks`), and its own rule-based start (`ModelConfig.starts`
+without the joint cold start, which the parent's fit stands in for).
+Finally the structure `select` keeps among every candidate is calibrated on every record with the whole pipeline
+(`fitting.calibrate`).
 """
 
 import dataclasses
@@ -17,8 +20,11 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
+import jax.tree_util as jtu
 import numpy as np
 
+import piezojax as pj
 from piezojax import PiezojaxValueError
 
 from .. import files
@@ -88,7 +94,8 @@ class Identification:
         width = max(len(c.structure.label()) for c in self.candidates)
         lines = [f"structure identification: {len(self.candidates)} candidates fitted in "
                  f"{self.seconds - self.final_seconds:.0f} s, the one kept calibrated on every record in "
-                 f"{self.final_seconds:.0f} s; {self.split}",
+                 f"{self.final_seconds:.0f} s (the whole search {self.seconds / max(self.final_seconds, 1e-9):.1f}x "
+                 f"that calibration); {self.split}",
                  f"  kept: the fewest parameters within {Z:g} standard errors of the best validation score "
                  "(* kept, ~ within)",
                  f"    {'structure':<{width}}  params  train/noise  valid/noise  seconds  code"]
@@ -174,6 +181,54 @@ def identify(dataset, *, base: str | ModelConfig | None = None, max_steps: int |
     return Identification(cal, search.candidates, kept, within, parts.description, now - t0, now - t_final)
 
 
+def warm_start(config, start, fitted, shared: set[str]):
+    """`start` (a candidate's data-driven start, reparametrised as `ModelConfig.starts` returns it) with the blocks
+    of `shared` (`shared_blocks`) at their values in `fitted` (the parent's fitted model), where their parameter
+    shapes agree; an output polynomial the candidate adds keeps its own coefficients around the parent's operator."""
+    model = pj.unwrap(start)
+    for name in ("hysteresis", "creep", "dynamics", "offset", "prehistory", "delay"):
+        if name not in shared or not hasattr(model, name):
+            continue
+        where = lambda m, name=name: getattr(m, name)  # noqa: E731
+        mine, theirs = where(model), getattr(fitted, name, None)
+        if isinstance(mine, pj.OutputPolynomial) and not isinstance(theirs, pj.OutputPolynomial):
+            where = lambda m: m.hysteresis.hysteresis  # noqa: E731  (an output polynomial added to the parent's)
+            mine = where(model)
+        if _alike(mine, theirs):
+            model = eqx.tree_at(where, model, theirs)
+    return config.constrain(model)
+
+
+def _warm_and_own(config, dataset, fitted, shared: set[str]) -> list:
+    """A candidate's two starts: from its parent's fit (`warm_start`) and its own rule-based start (the joint cold
+    start is not made: the parent's fit stands in for it)."""
+    own = config.starts(dataset, cold_start=False)[0]
+    return [warm_start(config, own, fitted, shared), own]
+
+
+def shared_blocks(child: Structure, parent: Structure) -> set[str]:
+    """The parts of `child` that are `parent`'s: the hysteresis (its kind and size; an output polynomial may be
+    added), the creep (kind, order and structure), the dynamics (poles and zeros), and the offset, prehistory and
+    delay."""
+    out = {"offset", "prehistory", "delay"}
+    if (child.hysteresis, child.elements) == (parent.hysteresis, parent.elements) and (
+            child.polynomial in (0, parent.polynomial) or not parent.polynomial):
+        out.add("hysteresis")
+    if (child.creep, child.creep_order, child.creep_structure) == (parent.creep, parent.creep_order,
+                                                                   parent.creep_structure):
+        out.add("creep")
+    if (child.dynamics, child.zeros) == (parent.dynamics, parent.zeros):
+        out.add("dynamics")
+    return out
+
+
+def _alike(a, b) -> bool:
+    """Whether `b` can stand for `a`: both present, of one type, tree structure and leaf shapes."""
+    if a is None or b is None or type(a) is not type(b) or jtu.tree_structure(a) != jtu.tree_structure(b):
+        return False
+    return all(np.shape(x) == np.shape(y) for x, y in zip(jtu.tree_leaves(a), jtu.tree_leaves(b)))
+
+
 class _Search:
     """The candidates fitted so far, by structure (each fitted once)."""
 
@@ -181,6 +236,7 @@ class _Search:
         self.parts, self.base, self.fixed, self.log = parts, base, fixed, log
         self.candidates: list[Candidate] = []
         self.by_structure: dict[Structure, int] = {}
+        self.models: dict[Structure, object] = {}  # each fitted candidate's model (unwrapped), its children's start
 
     def stage(self, structures: list[Structure], current: Structure | None) -> Structure:
         """Fit the structures not fitted yet; the one `select` keeps among them and `current`."""
@@ -191,7 +247,7 @@ class _Search:
                 continue
             if s not in self.by_structure:
                 self.by_structure[s] = len(self.candidates)
-                self.candidates.append(self._fit(s))
+                self.candidates.append(self._fit(s, current))
             indices.append(self.by_structure[s])
         indices = list(dict.fromkeys(indices))
         fitted = [self.candidates[i] for i in indices]
@@ -211,20 +267,23 @@ class _Search:
         if "creep" in self.fixed:
             reset |= dict(creep="none", creep_order=1, creep_structure="parallel")
         if "dynamics" in self.fixed:
-            reset |= dict(dynamics=0)
+            reset |= dict(dynamics=0, zeros=0)
         if "state" in self.fixed:
             reset |= dict(prehistory=False)
         if "input" in self.fixed:
             reset |= dict(delay=False)
         return dataclasses.replace(s, **reset)
 
-    def _fit(self, s: Structure) -> Candidate:
+    def _fit(self, s: Structure, parent: Structure | None) -> Candidate:
         t0 = time.perf_counter()
         text = s.toml(self.base)
         config = parse_config(text, f"candidate {s.label()}")
         config = dataclasses.replace(config, max_steps=min(config.max_steps, CANDIDATE_MAX_STEPS))
+        fitted = None if parent is None else self.models.get(parent)
         try:
-            cal = calibrate(config, self.parts.training, progress=False, refine_rounds=False)
+            cal = calibrate(config, self.parts.training, progress=False, refine_rounds=False,
+                            starts=None if fitted is None else lambda cfg, data: _warm_and_own(
+                                cfg, data, fitted, shared_blocks(s, parent)))
         except PiezojaxValueError as e:
             self.log(f"  {s.label()}: not fitted ({e})")
             return Candidate(s, config, 0, np.inf, np.inf, "not_fitted", time.perf_counter() - t0,
@@ -235,6 +294,7 @@ class _Search:
                         for m in chans.values()), default=np.nan)
         c = Candidate(s, config, len(result.parameter_names), float(training), score(errors), result.code,
                       time.perf_counter() - t0, errors)
+        self.models[s] = result.model
         self.log(f"  {s.label()}: {c.parameters} parameters, RMSE/noise {c.training:.3f} training, "
                  f"{c.validation:.3f} validation ({c.code}, {c.seconds:.1f} s)")
         return c

@@ -21,7 +21,8 @@ SEARCHED_TABLES = ("hysteresis", "creep", "dynamics", "state", "input")
 class Structure:
     """One model structure of `pj.Actuator`: the hysteresis kind (`elements`: its plays, elements or levels; an
     output `polynomial` of that degree, 0 for none), the creep kind (`creep_order` lags, in `creep_structure`), the
-    dynamics' `order` (poles, from 0), a fitted hysteresis `prehistory` and an input `delay`."""
+    dynamics' poles (`dynamics`, from 0) and `zeros` (a pair with two or more poles: an antiresonance; else real),
+    a fitted hysteresis `prehistory` and an input `delay`."""
 
     hysteresis: str = "prandtl_ishlinskii"
     elements: int = 8
@@ -30,6 +31,7 @@ class Structure:
     creep_order: int = 1
     creep_structure: str = "parallel"
     dynamics: int = 0
+    zeros: int = 0
     prehistory: bool = False
     delay: bool = False
 
@@ -46,6 +48,8 @@ class Structure:
             parts.append(f"{_SHORT[self.creep]}{order} {self.creep_structure}")
         if self.dynamics:
             parts.append(f"{self.dynamics} pole{'s' if self.dynamics > 1 else ''}")
+        if self.zeros:
+            parts.append(f"{self.zeros} zero{'s' if self.zeros > 1 else ''}")
         parts += ["prehistory"] * self.prehistory + ["delay"] * self.delay
         return " + ".join(parts)
 
@@ -68,6 +72,9 @@ class Structure:
             out["creep"] = c
         if self.dynamics:
             out["dynamics"] = [f"order = {self.dynamics}"]
+            if self.zeros:
+                out["dynamics"].append(f"zero_pairs = {self.zeros // 2}" if self.dynamics >= 2 and self.zeros % 2 == 0
+                                       else f"real_zeros = {self.zeros}")
         if self.prehistory and self.hysteresis != "none":
             out["state"] = ["prehistory = true"]
         if self.delay:
@@ -82,10 +89,12 @@ class Structure:
         return "\n".join(own) + ("\n" + base if base.strip() else "")
 
     def valid(self) -> bool:
-        """Whether the CONFIG can express it (a lag creep only in series; a prehistory needs a hysteresis)."""
+        """Whether the CONFIG can express it (a lag creep only in series; a prehistory needs a hysteresis; no more
+        zeros than poles)."""
         return not ((self.creep == "lag" and self.creep_structure != "series")
                     or (self.prehistory and self.hysteresis == "none")
-                    or (self.hysteresis == "none" and self.creep == "none" and self.dynamics == 0))
+                    or (self.hysteresis == "none" and self.creep == "none" and self.dynamics == 0)
+                    or self.zeros > self.dynamics)
 
 
 def fixed_tables(base: str) -> set[str]:
@@ -122,8 +131,8 @@ def deeper_creep(s: Structure) -> list[Structure]:
 
 
 def dynamics_neighbours(s: Structure) -> list[Structure]:
-    """`s` with no dynamics, one real pole, one and two resonances."""
-    return [dataclasses.replace(s, dynamics=n) for n in (0, 1, 2, 4)]
+    """`s` with no dynamics, one real pole, one and two resonances (without zeros)."""
+    return [dataclasses.replace(s, dynamics=n, zeros=0) for n in (0, 1, 2, 4)]
 
 
 def hysteresis_neighbours(s: Structure) -> list[Structure]:
@@ -133,8 +142,11 @@ def hysteresis_neighbours(s: Structure) -> list[Structure]:
 
 
 def extra_neighbours(s: Structure) -> list[Structure]:
-    """`s` with each of what it lacks: an output polynomial of degree 2, a prehistory, an input delay."""
+    """`s` with each of what it lacks: an output polynomial of degree 2, zeros in its dynamics (a pair, an
+    antiresonance, with two poles or more; one real zero with one pole), a prehistory, an input delay."""
     out = []
+    if s.dynamics and not s.zeros:
+        out.append(dataclasses.replace(s, zeros=2 if s.dynamics >= 2 else 1))
     if s.hysteresis != "none" and not s.polynomial:
         out.append(dataclasses.replace(s, polynomial=2))
     if s.hysteresis != "none" and not s.prehistory:
