@@ -97,6 +97,14 @@ def test_fit_auto_arguments_are_checked(tmp_path, capsys):
     assert main(["fit", str(config), "a.csv", "--config", str(config), "--out", str(tmp_path / "o")]) == 2
     assert "use it with --auto" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    # a base may give only how the records are read; a bad one is named
+    base = fitting._identify.parse_base('[data]\nunits = {displacement = "um"}\n', "data.toml")
+    assert base.data["units"] == {"displacement": "um"} and base.hysteresis == S.Structure().hysteresis
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[data]\nunits = {displacement = "furlong"}\n')
+    assert main(["fit", "--auto", "a.csv", "--config", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.toml" in err and "furlong" in err and not (tmp_path / "o").exists()
 
 
 def test_a_candidate_starts_from_its_parents_fitted_blocks():

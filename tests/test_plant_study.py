@@ -178,3 +178,35 @@ def test_plant_study_reduced():
     summary = ps.main(["--draws", "1", "--cases", "pi,bw", "--seconds", "0.5", "--seed", "1"])
     for case in ("pi", "bw"):  # every fit ran to its outputs (exit 0 or 1) and predicts to the noise
         assert summary[case]["worst"] <= 1.5 and summary[case]["crashed"] == 0
+
+
+def test_identification_plants_agree_with_library():
+    """The identification case's plants, written without piezojax code: Maxwell slip (plain stop loops) with two
+    resonances, and a play plant with parallel creep and a delay of a whole number of samples, each against
+    `pj.Actuator` of the same blocks; every plant of `IDENTIFY` gives finite records."""
+    v = ps.signals(0.5)["train_steps"]
+    ms = ps.draw_identification_truth("maxwell_slip", "series", 2, False, np.random.default_rng(3))
+    y = ps.plant(ms, v)
+    model = pj.Actuator(
+        pj.MaxwellSlip(ms["stiffnesses"], ms["stiffnesses"] * ms["thresholds"]),
+        pj.KelvinVoigtCreep(1.0 / ms["creep_gains"], ms["taus"], k0=1.0),
+        pj.StableTransferFunction(1.0, omega=2 * np.pi * np.array([ms["f_res"], ms["f_res2"]]),
+                                  zeta=[ms["zeta"], ms["zeta2"]]),
+        structure="series",
+    )
+    err = np.asarray(model.simulate(jax.numpy.asarray(v), ps.DT).displacement) - y
+    assert np.max(np.abs(err)) < 5e-4 * np.ptp(y)
+    play = ps.draw_identification_truth("play", "parallel", 1, False, np.random.default_rng(4))
+    play["delay"] = 2 * ps.DT
+    y = ps.plant(play, v)
+    model = pj.Actuator(
+        pj.PrandtlIshlinskii(play["weights"], play["thresholds"], w0=0.0),
+        pj.KelvinVoigtCreep(1.0 / (play["creep_gains"] * ps.SCALE), play["taus"], k0=None),
+        pj.StableTransferFunction(1.0, omega=[2 * np.pi * play["f_res"]], zeta=[play["zeta"]]),
+        delay=pj.Delay(2 * ps.DT),
+    )
+    err = np.asarray(model.simulate(jax.numpy.asarray(v), ps.DT).displacement) - y
+    assert np.max(np.abs(err)) < 5e-4 * np.ptp(y)
+    for i, spec in enumerate(ps.IDENTIFY):
+        truth = ps.draw_identification_truth(*spec, np.random.default_rng(i))
+        assert np.all(np.isfinite(ps.plant(truth, v[:2000]))), spec

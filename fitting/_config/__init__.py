@@ -26,5 +26,5 @@ from .kinds import (
     unregister_kind as unregister_kind,
 )
 from .model_config import MAX_STEPS as MAX_STEPS, ModelConfig as ModelConfig
-from .parse import load_config as load_config, parse_config as parse_config
+from .parse import load_config as load_config, parse_config as parse_config, read_config_text as read_config_text
 from .table import ConfigTable as ConfigTable, StartWarning as StartWarning

@@ -292,13 +292,18 @@ def load_config(path: str | os.PathLike) -> ModelConfig:
     cfg = load_config("pi_creep.toml"); init = cfg.build(fitting.Dataset.from_files(["run1.csv"]))
     ```
     """
+    return parse_config(read_config_text(path), source=str(Path(os.fspath(path)).expanduser()))
+
+
+def read_config_text(path: str | os.PathLike) -> str:
+    """The text of a configuration file (UTF-8); a missing, unreadable or non-file path raises one
+    `PiezojaxValueError` naming it."""
     p = Path(os.fspath(path)).expanduser()
     if not p.exists():
         raise PiezojaxValueError(f"configuration file {str(p)!r} does not exist")
     if p.is_dir():
         raise PiezojaxValueError(f"configuration file {str(p)!r} is a directory")
     try:
-        text = p.read_text(encoding="utf-8")
+        return p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise PiezojaxValueError(f"cannot read configuration file {str(p)!r}: {e}") from e
-    return parse_config(text, source=str(p))

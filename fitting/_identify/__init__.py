@@ -7,6 +7,7 @@ from .search import (
     Candidate as Candidate,
     Identification as Identification,
     identify as identify,
+    parse_base as parse_base,
 )
 from .structures import HYSTERESIS_KINDS as HYSTERESIS_KINDS, Structure as Structure
 from .validation import VALIDATION_FRACTION as VALIDATION_FRACTION, Z as Z, select as select

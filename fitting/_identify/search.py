@@ -145,7 +145,7 @@ def identify(dataset, *, base: str | ModelConfig | None = None, max_steps: int |
       how they are divided between fitting and validation).
     - `base`: a CONFIG (its text, or a `ModelConfig`) whose tables are fixed: the search leaves a `[hysteresis]`,
       `[creep]`, `[dynamics]`, `[state]` or `[input]` it gives as it is, and its `[fit]` and `[data]` apply to every
-      candidate.
+      candidate; it may give no model table (e.g. only `[data]`, how the records are read; see `parse_base`).
     - `max_steps`: the final fit's steps (default: the CONFIG's `[fit] max_steps`).
     - `progress`, `log`: as for `fitting.calibrate` (`log` gets one line per candidate).
 
@@ -160,6 +160,7 @@ def identify(dataset, *, base: str | ModelConfig | None = None, max_steps: int |
     t0 = time.perf_counter()
     base_text = base.text if isinstance(base, ModelConfig) else (base or "")
     fixed = fixed_tables(base_text)
+    parse_base(base_text)
     if not isinstance(dataset, Dataset):
         dataset = Dataset(experiments_of(dataset))
     if not all(e.has("displacement") for e in dataset):
@@ -227,6 +228,13 @@ def _alike(a, b) -> bool:
     if a is None or b is None or type(a) is not type(b) or jtu.tree_structure(a) != jtu.tree_structure(b):
         return False
     return all(np.shape(x) == np.shape(y) for x, y in zip(jtu.tree_leaves(a), jtu.tree_leaves(b)))
+
+
+def parse_base(text: str, source: str = "the base CONFIG") -> ModelConfig:
+    """A base CONFIG (its text) checked as the search will use it: completed with `START`'s tables that it does not
+    give (a base may give no model table at all: only `[data]` or `[fit]`). Returns that completed `ModelConfig`
+    (its `data` is how the records are read); a bad base raises one `PiezojaxValueError` naming `source`."""
+    return parse_config(START.toml(text), source)
 
 
 class _Search:

@@ -58,13 +58,14 @@ def _cmd_fit_auto(args) -> int:
     of the structure kept."""
     import fitting
 
-    from .._config import load_config
+    from .._config import read_config_text
+    from .._identify import parse_base
 
     quiet = args.quiet
     data = [args.config, *args.data]
     out = _check_output(args.out, args.overwrite, "fit", inputs=[*data, *([args.base] if args.base else [])])
-    base = load_config(args.base) if args.base else None
-    settings = _data_settings(args, base.data if base is not None else {})
+    base = read_config_text(args.base) if args.base else None
+    settings = _data_settings(args, parse_base(base, args.base).data if base is not None else {})
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
         dataset, unit_warnings = _load_data(data, settings, args.group)
         if args.window is not None:
