@@ -9,7 +9,10 @@ be used to estimate its state; `warm_up` does that for a fitted model. On the wi
 - **each sensor's zero**: a constant added to each predicted channel the record measures;
 - **the creep's state** (a `pj.Actuator` whose creep has `time_constants`: Kelvin–Voigt, lag): the free response
   of the creep from an unknown state, $\sum_i c_i\,e^{-(t - t_0)/\tau_i}$ added to the displacement, one amplitude
-  per time constant (a linear block's response to its initial state; the dynamics' modes die out within the window);
+  per time constant (a linear block's response to its initial state; the dynamics' modes die out within the window),
+  kept only where, fitted on the window's first half, it predicts the second half better than the offset alone
+  (a time constant much longer than the window would otherwise turn any drift into a large extrapolated creep); a
+  time constant many times the window is estimated from the window's slope only: the longer the window, the better;
 - **the hysteresis' memory** (a `pj.Actuator` with a hysteresis, and no `history` given): the prehistory
   excursion $u_p$ (`pj.Actuator`'s `prehistory`), the model as fitted and a grid of `GRID` excursions over
   $\pm\max|v_{in}|$ tried, the best refined by a bounded scalar search, each judged by the window's residual after
@@ -21,6 +24,7 @@ prediction of the window, compiled once per shape).
 """
 
 import dataclasses
+import numbers
 from typing import Any
 
 import equinox as eqx
@@ -98,7 +102,7 @@ def warm_up(model, experiment: Experiment, seconds: float, *, predictor: Predict
     """
     if not isinstance(experiment, Experiment):
         raise PiezojaxValueError(f"`experiment` must be a fitting.Experiment, got {type(experiment).__name__}")
-    if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not np.isfinite(seconds) or seconds <= 0:
+    if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) or not np.isfinite(seconds) or seconds <= 0:
         raise PiezojaxValueError(f"the warm-up must be a number of seconds > 0, got {seconds!r}")
     predictor = default_predictor(model) if predictor is None else predictor
     channels = [c for c in predictor.outputs if experiment.has(c)]
@@ -120,7 +124,8 @@ def warm_up(model, experiment: Experiment, seconds: float, *, predictor: Predict
                          axis=1) for c in channels}
     window = experiment.slice(None, end)
     measured = {c: np.asarray(window[c], float) for c in channels}
-    scale = {c: max(float(np.ptp(y)), float(np.max(np.abs(y))), np.finfo(float).tiny) for c, y in measured.items()}
+    whole = {c: np.asarray(experiment[c], float) for c in channels}
+    scale = {c: max(float(np.ptp(y)), float(np.max(np.abs(y))), np.finfo(float).tiny) for c, y in whole.items()}
 
     def least_squares(pred: dict) -> tuple[dict, float]:
         """The terms' coefficients per channel over the window, and the sum of the squared residuals after them
@@ -131,7 +136,8 @@ def warm_up(model, experiment: Experiment, seconds: float, *, predictor: Predict
             if not np.all(np.isfinite(r)):
                 return {}, np.inf
             coefs[c] = np.linalg.lstsq(terms[c][inside], r, rcond=None)[0]
-            total += float(np.sum(((r - terms[c][inside] @ coefs[c]) / scale[c]) ** 2))
+            with np.errstate(over="ignore", invalid="ignore"):  # a wild trial: inf, not a warning
+                total += float(np.sum(((r - terms[c][inside] @ coefs[c]) / scale[c]) ** 2))
         return coefs, total
 
     def misfit(m) -> float:
@@ -157,12 +163,33 @@ def warm_up(model, experiment: Experiment, seconds: float, *, predictor: Predict
             if cost < misfit(model):  # never worse over the window than the model's own start
                 model, prehistory = with_prehistory(u), u
     pred = predict(model, experiment, predictor=predictor, history=history, check_finite=False)
+    if "displacement" in channels and taus and not _creep_extrapolates(
+            measured["displacement"] - pred["displacement"][:samples], terms["displacement"][:samples]):
+        terms["displacement"] = terms["displacement"][:, :1]  # the offset alone
+        taus = []
     coefs, _ = least_squares(pred)
     offsets, creep = {}, {}
     for c in channels:
-        k = coefs.get(c, np.zeros(terms[c].shape[1]))
+        k = coefs.get(c)
+        if k is None:
+            raise PiezojaxValueError(f"{experiment._label()}: the model's {c!r} is not finite over the warm-up")
         pred[c] = pred[c] + terms[c] @ k
         offsets[c] = float(k[0])
         if c == "displacement":
             creep = {tau: float(x) for tau, x in zip(taus, k[1:])}
     return WarmUp(model, offsets, creep, prehistory, float(seconds), samples, pred, ~inside)
+
+
+def _creep_extrapolates(residual: np.ndarray, terms: np.ndarray) -> bool:
+    """Whether the creep's free response (the columns of `terms` after the offset's) predicts the window's second
+    half better than the offset alone, each fitted on its first half: a time constant much longer than the window
+    makes its column nearly a constant plus a slope, which the least squares would fit to any drift of the
+    residual, noise or misfit, and extrapolate; kept only when it extrapolates within the window."""
+    half = residual.size // 2
+    if half < 2 * terms.shape[1]:
+        return False
+    errors = []
+    for cols in (terms[:, :1], terms):
+        k = np.linalg.lstsq(cols[:half], residual[:half], rcond=None)[0]
+        errors.append(float(np.sum((residual[half:] - cols[half:] @ k) ** 2)))
+    return errors[1] < errors[0]

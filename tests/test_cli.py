@@ -265,7 +265,6 @@ def test_predict_warm_up_estimates_the_records_offset_and_prehistory(fitted, wor
     assert after["warm_up"]["seconds"] == 0.4 and est["samples"] == 400
     assert est["offsets"]["displacement"] == pytest.approx(2e-7, abs=5e-9)
     assert est["prehistory"] == pytest.approx(-25.0, abs=1.0)
-    assert [c["time_constant"] for c in est["creep_free_response"]] == pytest.approx([TRUTH["tau"]], rel=0.05)
     assert after["metrics"]["day2"]["displacement"]["rmse_over_noise"] < 1.5  # scored after the window only
     # the same numbers from the library
     fit = fitting.load_fit(out)
