@@ -202,7 +202,7 @@ last is outside every class of the library."""
 def draw_identification_truth(family: str, structure: str, resonances: int, delay: bool,
                               rng: np.random.Generator) -> dict:
     """One plant of the identification case: the study's creep and resonance draws, the hysteresis of `family`
-    (PI, play: the PI draw without or with its linear term; Maxwell slip: 6 elements; Preisach: 10 relays on 5
+    (PI, play: the PI draw with or without its linear term; Maxwell slip: 6 elements; Preisach: the 10 relays of 4
     levels and a linear term; rate-dependent: a play whose threshold grows with the voltage's rate), the creep in
     `structure`, a second resonance at 1.8-3 times the first (at most half the Nyquist rate) and a delay of 0.5-3
     samples where asked."""
@@ -214,8 +214,9 @@ def draw_identification_truth(family: str, structure: str, resonances: int, dela
     elif family == "maxwell_slip":
         truth["stiffnesses"] = rng.uniform(0.1, 0.4, N_PLAYS) * SCALE
     elif family == "preisach":
-        levels = np.sort(rng.uniform(0.05, 0.9, 5)) * VMAX
-        pairs = [(a, b) for i, a in enumerate(levels) for b in np.concatenate([[-1.0], levels[:i]])][:10]
+        # relays switching on at a level and off at a lower one (or never, -1 V: the drives are unipolar)
+        levels = np.sort(rng.uniform(0.05, 0.9, 4)) * VMAX
+        pairs = [(a, b) for i, a in enumerate(levels) for b in np.concatenate([[-1.0], levels[:i]])]
         truth["up"], truth["down"] = (np.array(x) for x in zip(*pairs))
         truth["weights"] = rng.uniform(0.5, 2.0, len(pairs)) * SCALE * VMAX / 40
     elif family == "rate_dependent":
@@ -243,7 +244,7 @@ def plant(truth: dict, v: np.ndarray) -> np.ndarray:
         h = relays(v, truth["up"], truth["down"], truth["weights"]) + truth["w0"] * v
     elif family == "rate_dependent":  # a play whose threshold grows with |dV/dt|: outside every class of the library
         p, h = 0.0, np.empty(v.size)
-        rate = np.abs(np.gradient(v, DT))
+        rate = np.abs(np.diff(v, prepend=v[0])) / DT  # the last step's rate (causal)
         for k, u in enumerate(v):
             r = truth["r0"] * (1 + rate[k] / truth["rate_scale"])
             p = min(u + r, max(u - r, p))
@@ -475,9 +476,11 @@ def run_identification(spec: tuple, index: int, seed: int, folder: Path, seconds
         return row
     fit = fitting.load_fit(data / "auto")
     ident = fit.summary.get("identification", {})
-    row["kept"], row["candidates"] = ident.get("chosen"), len(ident.get("candidates", []))
+    candidates = ident.get("candidates", [])
+    row["kept"], row["candidates"] = ident.get("chosen"), len(candidates)
     row["final_s"] = ident.get("final_seconds")
-    row["validation"] = min(c["validation_rmse_over_noise"] for c in ident.get("candidates", [{}]))
+    kept = candidates[ident["kept"]] if candidates and "kept" in ident else {}
+    row["validation"] = kept.get("validation_rmse_over_noise") or math.nan  # the kept one's (None: not finite)
     held_out = fitting.Dataset.from_files([str(data / "test_decaying_sine.csv"), str(data / "test_multisine.csv")])
     row["held_out"] = {e.name: fitting.error_metrics(fitting.predict(fit.model, e, predictor=fit.config.predictor())[
         "displacement"], e["displacement"])["rmse"] / sigma for e in held_out}

@@ -212,8 +212,8 @@ def _affordable_starts(config, dataset, num_free: int, starts: list, log: Callab
         return starts
     need, have = len(starts) * memory_estimate(config, dataset, num_free), physical_memory()
     if need > MULTI_START_MEMORY or (have is not None and need > 0.5 * have):
-        log(f"fitting only the start closest to the data: {len(starts)} starts together would need about "
-            f"{need / 2**30:.1f} GiB")
+        log(f"fitting only the {'first start' if given else 'start closest to the data'}: {len(starts)} starts "
+            f"together would need about {need / 2**30:.1f} GiB")
         return starts[:1]
     log(f"{len(starts)} starts {'' if given else '(rule-based and joint cold start) '}fitted together; the best is "
         "kept")

@@ -161,3 +161,28 @@ def test_calibrate_fits_the_starts_a_caller_makes():
     assert cal.result.starts is None and cal.result.cost < cal.result.initial_cost  # one start: no multi-start table
     with pytest.raises(pj.PiezojaxValueError, match="returned no start"):
         fitting.calibrate(cfg, rec, starts=lambda c, d: [], progress=False)
+
+
+def test_added_zeros_start_around_the_parents_fitted_poles():
+    """A candidate that adds zeros to its parent's dynamics starts from the parent's fitted poles and gain, each
+    zero pair at 1.25 times its pole pair's frequency with its damping (the CONFIG's rule around the fitted poles);
+    the extra stages add one part at a time to the structure kept so far."""
+    from fitting._identify.search import shared_blocks, warm_start
+
+    t = np.arange(3000) * DT
+    v = 50 * np.sin(2 * np.pi * 2 * t) * np.minimum(1, t / 0.3)
+    rec = fitting.Dataset([fitting.Experiment.from_arrays(t=t, v_in=v, displacement=1e-8 * v, name="r")])
+    parent = S.Structure("prandtl_ishlinskii", 4, dynamics=2)
+    fitted = pj.unwrap(fitting.parse_config(parent.toml(), "p").starts(rec)[0])
+    fitted = eqx.tree_at(lambda m: (m.dynamics.omega, m.dynamics.zeta), fitted,
+                         (jnp.asarray([2 * np.pi * 321.0]), jnp.asarray([0.07])))
+    child = dataclasses.replace(parent, zeros=2)
+    cfg = fitting.parse_config(child.toml(), "c")
+    assert shared_blocks(child, parent) == {"hysteresis", "creep", "offset", "prehistory", "delay", "dynamics poles"}
+    got = pj.unwrap(warm_start(cfg, cfg.starts(rec)[0], fitted, shared_blocks(child, parent))).dynamics
+    np.testing.assert_allclose(got.omega, [2 * np.pi * 321.0], rtol=1e-12)
+    np.testing.assert_allclose(got.zero_omega, [1.25 * 2 * np.pi * 321.0], rtol=1e-12)
+    np.testing.assert_allclose(got.zero_zeta, [0.07], rtol=1e-12)
+    kept = dataclasses.replace(parent, zeros=2, polynomial=2)
+    assert S.extra_neighbours(kept, "prehistory") == [dataclasses.replace(kept, prehistory=True)]
+    assert S.extra_neighbours(kept, "zeros") == [] and len(S.extra_neighbours(parent)) == 4

@@ -1,17 +1,16 @@
 r"""`identify`: find the structure of an actuator's model from its records, then calibrate it.
 
 The search is greedy, by stages, each fitting the current structure's neighbours in one respect and keeping the one
-`select` keeps among them and the current one (`validation.py`): the dynamics (0, 1, 2, 4 poles; first, since a
-creep fitted without a resonance the data have bends to mimic it), the creep (none; Kelvin–Voigt or lag, in series
-or in parallel; logarithmic), the hysteresis kind (every kind of `HYSTERESIS_KINDS`, so each is fitted and ranked
-once), the creep again (for the kind kept), one more creep lag, then an output polynomial, zeros of the dynamics, a
-prehistory and an input delay one at a time. It starts from `START`. A candidate is fitted once (a stage that
-meets it again reuses its fit), without the refinement rounds (`calibrate(..., refine_rounds=False)`) and with at most
-`CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the stage's current structure) for the
-blocks it shares with it (`warm_start`, `shared_blocks`), and its own rule-based start (`ModelConfig.starts`
-without the joint cold start, which the parent's fit stands in for).
-Finally the structure `select` keeps among every candidate is calibrated on every record with the whole pipeline
-(`fitting.calibrate`).
+`select` keeps among them and the current one (`validation.py`): the dynamics (0, 1, 2, 4 poles; first, since a creep
+fitted without a resonance the data have bends to mimic it), the creep (none; Kelvin–Voigt or lag, in series or in
+parallel; logarithmic), the hysteresis kind (every kind of `HYSTERESIS_KINDS`, so each is fitted and ranked once), the
+creep again (for the kind kept), one more creep lag, then zeros of the dynamics, an output polynomial, a prehistory and
+an input delay (`EXTRAS`), one stage each, each adding to the structure kept so far. It starts from `START`. A candidate
+is fitted once (a stage that meets it again reuses its fit), without the refinement rounds (`calibrate(...,
+refine_rounds=False)`) and with at most `CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the
+stage's current structure) for the blocks it shares with it (`warm_start`, `shared_blocks`), and its own rule-based
+start (`ModelConfig.starts` without the joint cold start, which the parent's fit stands in for). Finally the structure
+`select` keeps among every candidate is calibrated on every record with the whole pipeline (`fitting.calibrate`).
 """
 
 import dataclasses
@@ -21,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import equinox as eqx
+import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
@@ -33,6 +33,7 @@ from .._config import ModelConfig, parse_config
 from .._data import Dataset, experiments_of
 from .._refine import silent
 from .structures import (
+    EXTRAS,
     Structure,
     creep_neighbours,
     deeper_creep,
@@ -171,8 +172,8 @@ def identify(dataset, *, base: str | ModelConfig | None = None, max_steps: int |
     current = search.stage([START], None)
     for neighbours in (dynamics_neighbours, creep_neighbours, hysteresis_neighbours, creep_neighbours, deeper_creep):
         current = search.stage(neighbours(current), current)
-    for extra in extra_neighbours(current):
-        current = search.stage([extra], current)
+    for what in EXTRAS:
+        current = search.stage(extra_neighbours(current, what), current)
     kept, within = select([c.errors for c in search.candidates], [c.parameters for c in search.candidates])
     chosen = search.candidates[kept]
     log(f"kept {chosen.structure.label()}; calibrating it on every record")
@@ -187,6 +188,8 @@ def warm_start(config, start, fitted, shared: set[str]):
     of `shared` (`shared_blocks`) at their values in `fitted` (the parent's fitted model), where their parameter
     shapes agree; an output polynomial the candidate adds keeps its own coefficients around the parent's operator."""
     model = pj.unwrap(start)
+    if "dynamics poles" in shared:
+        model = _with_poles(model, fitted.dynamics)
     for name in ("hysteresis", "creep", "dynamics", "offset", "prehistory", "delay"):
         if name not in shared or not hasattr(model, name):
             continue
@@ -204,13 +207,16 @@ def _warm_and_own(config, dataset, fitted, shared: set[str]) -> list:
     """A candidate's two starts: from its parent's fit (`warm_start`) and its own rule-based start (the joint cold
     start is not made: the parent's fit stands in for it)."""
     own = config.starts(dataset, cold_start=False)[0]
-    return [warm_start(config, own, fitted, shared), own]
+    try:
+        return [warm_start(config, own, fitted, shared), own]
+    except PiezojaxValueError:  # a fitted value the candidate's reparametrisation refuses (at its bound)
+        return [own]
 
 
 def shared_blocks(child: Structure, parent: Structure) -> set[str]:
     """The parts of `child` that are `parent`'s: the hysteresis (its kind and size; an output polynomial may be
-    added), the creep (kind, order and structure), the dynamics (poles and zeros), and the offset, prehistory and
-    delay."""
+    added), the creep (kind, order and structure), the dynamics (poles and zeros; `"dynamics poles"` where the
+    child adds zeros to the parent's poles), and the offset, prehistory and delay."""
     out = {"offset", "prehistory", "delay"}
     if (child.hysteresis, child.elements) == (parent.hysteresis, parent.elements) and (
             child.polynomial in (0, parent.polynomial) or not parent.polynomial):
@@ -220,7 +226,29 @@ def shared_blocks(child: Structure, parent: Structure) -> set[str]:
         out.add("creep")
     if (child.dynamics, child.zeros) == (parent.dynamics, parent.zeros):
         out.add("dynamics")
+    elif child.dynamics == parent.dynamics and not parent.zeros:
+        out.add("dynamics poles")  # zeros added to the parent's poles
     return out
+
+
+def _with_poles(model, fitted):
+    """`model` whose dynamics adds zeros to `fitted`'s (the parent's fitted dynamics, the same poles): its gain and
+    poles at `fitted`'s, each zero pair at 1.25 times its pole pair's frequency with its damping, each real zero at
+    1.25 times its real pole (the CONFIG's start rule, around the fitted poles)."""
+    mine = model.dynamics
+    fields = ("gain", "omega", "zeta", "poles")
+    if not all(np.shape(getattr(mine, f)) == np.shape(getattr(fitted, f)) for f in fields):
+        return model
+    values = [getattr(fitted, f) for f in fields]
+    m2, m1 = np.size(mine.zero_omega), np.size(mine.zeros)
+    if m2 <= np.size(fitted.omega):
+        fields += ("zero_omega", "zero_zeta")
+        values += [1.25 * fitted.omega[:m2], fitted.zeta[:m2]]
+    if m1 <= np.size(fitted.poles):
+        fields += ("zeros",)
+        values += [1.25 * fitted.poles[:m1]]
+    return eqx.tree_at(lambda m: tuple(getattr(m.dynamics, f) for f in fields), model,
+                       tuple(jnp.asarray(v, getattr(mine, f).dtype) for f, v in zip(fields, values)))
 
 
 def _alike(a, b) -> bool:

@@ -141,16 +141,21 @@ def hysteresis_neighbours(s: Structure) -> list[Structure]:
             for k in HYSTERESIS_KINDS]
 
 
-def extra_neighbours(s: Structure) -> list[Structure]:
-    """`s` with each of what it lacks: an output polynomial of degree 2, zeros in its dynamics (a pair, an
-    antiresonance, with two poles or more; one real zero with one pole), a prehistory, an input delay."""
+EXTRAS = ("zeros", "polynomial", "prehistory", "delay")
+"""The last stages, one at a time, in this order: each adds one part to the structure kept so far."""
+
+
+def extra_neighbours(s: Structure, what: str | None = None) -> list[Structure]:
+    """`s` with the part `what` of `EXTRAS` where it lacks it (every one of them for `None`): zeros in its dynamics
+    (a pair, an antiresonance, with two poles or more; one real zero with one pole), an output polynomial of degree
+    2, a prehistory, an input delay."""
     out = []
-    if s.dynamics and not s.zeros:
+    if what in (None, "zeros") and s.dynamics and not s.zeros:
         out.append(dataclasses.replace(s, zeros=2 if s.dynamics >= 2 else 1))
-    if s.hysteresis != "none" and not s.polynomial:
+    if what in (None, "polynomial") and s.hysteresis != "none" and not s.polynomial:
         out.append(dataclasses.replace(s, polynomial=2))
-    if s.hysteresis != "none" and not s.prehistory:
+    if what in (None, "prehistory") and s.hysteresis != "none" and not s.prehistory:
         out.append(dataclasses.replace(s, prehistory=True))
-    if not s.delay:
+    if what in (None, "delay") and not s.delay:
         out.append(dataclasses.replace(s, delay=True))
     return out

@@ -191,8 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="compute the errors only on samples with t >= T [s] (the predictions cover the whole file)")
     pred.add_argument("--warm-up", metavar="SECONDS", type=float,
                       help="a record from another occasion: estimate its sensors' zeros (an offset per measured "
-                      "channel) and the actuator's initial state (a prehistory excursion) from its first SECONDS, "
-                      "and score only after them (off by default; the estimates go to metrics.json)")
+                      "channel) and the actuator's initial state (the creep's free response, a prehistory excursion) "
+                      "from its first SECONDS, and score only after them (off by default; the estimates go to "
+                      "metrics.json); with --history, the hysteresis memory is the history's (no prehistory estimated)")
     _data_options(pred, "the fit (default: the fit's)")
 
     sim = sub.add_parser(
