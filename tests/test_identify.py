@@ -47,6 +47,11 @@ def test_every_structure_the_search_writes_is_a_valid_config():
                 assert 2 * o.zero_pairs + o.real_zeros == s.zeros
     assert {s.hysteresis for s in seen} == set(S.HYSTERESIS_KINDS) and len(seen) > 20
     assert {s.zeros for s in seen} == {0, 1, 2}  # a real zero after one pole, an antiresonance after a pair
+    # one CONFIG, one structure: what the CONFIG does not write does not make another candidate
+    texts = {}
+    for s in seen:
+        texts.setdefault(s.toml(), set()).add(s.normal())
+    assert all(len(v) == 1 for v in texts.values()) and len(texts) < len(seen)
     base = '[creep]\nkind = "lag"\nlags = 2\nstructure = "series"\n[fit]\nmax_steps = 50\n'
     cfg = fitting.parse_config(S.Structure(creep="kelvin_voigt", dynamics=2).toml(base), "b")
     assert cfg.creep == "lag" and cfg.max_steps == 50 and cfg.dynamics_order == 2

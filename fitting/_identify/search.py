@@ -308,7 +308,7 @@ class _Search:
             reset |= dict(prehistory=False)
         if "input" in self.fixed:
             reset |= dict(delay=False)
-        return dataclasses.replace(s, **reset)
+        return dataclasses.replace(s, **reset).normal()
 
     def _fit(self, s: Structure, parent: Structure | None) -> Candidate:
         t0 = time.perf_counter()

@@ -88,6 +88,23 @@ class Structure:
         own = [f"[{table}]\n{text}\n" for table, text in self.tables().items() if table not in given]
         return "\n".join(own) + ("\n" + base if base.strip() else "")
 
+    def normal(self) -> "Structure":
+        """The same model with the fields its CONFIG does not write at their defaults (a creep's order for none or
+        a logarithmic creep, its structure for none, zeros without dynamics, the elements and polynomial of a kind
+        without them), so that one CONFIG is one structure (fitted once)."""
+        changes = {}
+        if self.creep not in ("kelvin_voigt", "lag"):
+            changes["creep_order"] = 1
+        if self.creep == "none":
+            changes["creep_structure"] = "parallel"
+        if not self.dynamics:
+            changes["zeros"] = 0
+        if self.hysteresis not in _ELEMENT_KEY:
+            changes["elements"] = Structure.elements
+        if self.hysteresis == "none":
+            changes |= dict(polynomial=0, prehistory=False)
+        return dataclasses.replace(self, **changes)
+
     def valid(self) -> bool:
         """Whether the CONFIG can express it (a lag creep only in series; a prehistory needs a hysteresis; no more
         zeros than poles)."""
