@@ -45,6 +45,7 @@ kept is printed beside the truth (classes nest, so it is not a pass mark).
 """
 
 import argparse
+import contextlib
 import json
 import math
 import tempfile
@@ -469,7 +470,8 @@ def run_identification(spec: tuple, index: int, seed: int, folder: Path, seconds
     sigma, _ = write_records(truth, data, rng, seconds)
     train = [str(data / "train_triangles.csv"), str(data / "train_steps.csv")]
     start = time.perf_counter()
-    code = cli(["fit", "--auto", *train, "--out", str(data / "auto"), "--no-figures", "--quiet"])
+    with open(data / "auto.log", "w") as log, contextlib.redirect_stdout(log):  # the report: in the folder too
+        code = cli(["fit", "--auto", *train, "--out", str(data / "auto"), "--no-figures", "--quiet"])
     row = {"index": index, "truth": describe(truth), "exit": code, "time_s": time.perf_counter() - start,
            "sigma": sigma}
     if code not in (0, 1):
