@@ -45,9 +45,10 @@ kept is printed beside the truth (classes nest, so it is not a pass mark).
 """
 
 import argparse
-import contextlib
 import json
 import math
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -460,8 +461,6 @@ def describe(truth: dict) -> str:
 def run_identification(spec: tuple, index: int, seed: int, folder: Path, seconds: float) -> dict:
     """`piezojax fit --auto` on the two training records of one plant of `IDENTIFY`, then its held-out drives
     predicted from the fit folder (`piezojax predict`'s numbers): one row."""
-    from fitting.cli import main as cli
-
     family, structure, resonances, delay = spec
     rng = np.random.default_rng([seed, index, 2])
     truth = draw_identification_truth(family, structure, resonances, delay, rng)
@@ -470,8 +469,12 @@ def run_identification(spec: tuple, index: int, seed: int, folder: Path, seconds
     sigma, _ = write_records(truth, data, rng, seconds)
     train = [str(data / "train_triangles.csv"), str(data / "train_steps.csv")]
     start = time.perf_counter()
-    with open(data / "auto.log", "w") as log, contextlib.redirect_stdout(log):  # the report: in the folder too
-        code = cli(["fit", "--auto", *train, "--out", str(data / "auto"), "--no-figures", "--quiet"])
+    # the command in its own process, as a user runs it (one process per search: the programs it compiles, a few
+    # per candidate, are not kept from one search to the next)
+    with open(data / "auto.log", "w") as log:
+        code = subprocess.run([sys.executable, "-m", "fitting.cli", "fit", "--auto", *train, "--out",
+                               str(data / "auto"), "--no-figures", "--quiet"], stdout=log, stderr=subprocess.STDOUT,
+                              check=False).returncode
     row = {"index": index, "truth": describe(truth), "exit": code, "time_s": time.perf_counter() - start,
            "sigma": sigma}
     if code not in (0, 1):
@@ -546,6 +549,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--json", default=None, help="write the rows and the summary to this file")
     p.add_argument("--identify", action="store_true",
                    help="the identification case instead: `piezojax fit --auto` on one plant of each kind (IDENTIFY)")
+    p.add_argument("--plants", type=lambda x: [int(i) for i in x.split(",")], default=None,
+                   help="with --identify: the plants of IDENTIFY to run, by index (e.g. 2,3; default all)")
     args = p.parse_args(argv)
     if args.identify:
         return identification(args)
@@ -595,9 +600,11 @@ def identification(args) -> dict:
         print(f"{'#':>2}  {'truth':<44} {'structure kept':<52} {'decay':>6}  {'multi':>6}  {'valid':>6}  exit  "
               "candidates  time   (RMSE / noise std)")
         for i, spec in enumerate(IDENTIFY):
+            if args.plants is not None and i not in args.plants:
+                continue
             rows.append(run_identification(spec, i, args.seed, folder, args.seconds))
             _print_identification(rows[-1])
-    inside = [r for r, spec in zip(rows, IDENTIFY) if spec[0] != "rate_dependent"]
+    inside = [r for r in rows if "rate-dependent" not in r["truth"]]
     worst = max((r.get("held_out_worst", math.inf) for r in inside), default=math.inf)
     summ = {"plants": len(rows), "worst_in_class": worst, "exit_nonzero": sum(r["exit"] != 0 for r in inside),
             "seconds": time.perf_counter() - start}
