@@ -150,22 +150,19 @@ def _filtered(u: np.ndarray, num, den) -> np.ndarray:
     return out
 
 
-def linear_part(h: np.ndarray, creep_gains, taus, omega: float, zeta: float) -> np.ndarray:
-    """Series creep and resonance on a held input, exact ZOH sampling, from rest."""
+def _creep(creep_gains, taus) -> tuple[np.ndarray, np.ndarray]:
+    """$1 + \\sum_j c_j / (1 + \\tau_j s)$ as one rational function `(num, den)`."""
     num, den = np.array([1.0]), np.array([1.0])
-    for c, tau in zip(creep_gains, taus):  # (1 + sum c_j / (1 + tau_j s)) as one rational function
+    for c, tau in zip(creep_gains, taus):
         num = np.polyadd(np.polymul(num, [tau, 1.0]), c * den)
         den = np.polymul(den, [tau, 1.0])
-    num = np.polymul(num, [omega**2])
-    den = np.polymul(den, [1.0, 2 * zeta * omega, omega**2])
-    a, b, c, d = scipy.signal.tf2ss(num, den)
-    ad, bd, cd, dd, _ = scipy.signal.cont2discrete((a, b, c, d), DT, method="zoh")
-    x = np.zeros(ad.shape[0])
-    out = np.empty(h.size)
-    for k, u in enumerate(h):
-        out[k] = (cd @ x).item() + dd.item() * u
-        x = ad @ x + bd[:, 0] * u
-    return out
+    return num, den
+
+
+def linear_part(h: np.ndarray, creep_gains, taus, omega: float, zeta: float) -> np.ndarray:
+    """Series creep and resonance on a held input, exact ZOH sampling, from rest."""
+    num, den = _creep(creep_gains, taus)
+    return _filtered(h, np.polymul(num, [omega**2]), np.polymul(den, [1.0, 2 * zeta * omega, omega**2]))
 
 
 def draw_truth(family: str, rng: np.random.Generator, dense: bool = False) -> dict:
@@ -255,10 +252,7 @@ def plant(truth: dict, v: np.ndarray) -> np.ndarray:
         h = SCALE * bouc_wen(v, truth["A"], truth["beta"], truth["gamma"], truth["d"])
     if truth.get("structure", "series") == "series" and "f_res2" not in truth:
         return linear_part(h, truth["creep_gains"], truth["taus"], 2 * np.pi * truth["f_res"], truth["zeta"])
-    num, den = np.array([1.0]), np.array([1.0])
-    for c, tau in zip(truth["creep_gains"], truth["taus"]):
-        num = np.polyadd(np.polymul(num, [tau, 1.0]), c * den)
-        den = np.polymul(den, [tau, 1.0])
+    num, den = _creep(truth["creep_gains"], truth["taus"])
     r_num, r_den = np.array([1.0]), np.array([1.0])  # the resonances, one rational function
     for f, z in [(truth["f_res"], truth["zeta"])] + ([(truth["f_res2"], truth["zeta2"])] if "f_res2" in truth else []):
         w = 2 * np.pi * f
