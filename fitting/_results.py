@@ -116,6 +116,8 @@ class FitResult:
       `reason`, `steps`, and `best` (the one reported); `None` otherwise. After the command line's re-seeding
       rounds, the first fit's, each with `first_of`, the number of fits run (`best`: the one the second fit
       started from).
+    - `repairs`: where `fitting.fit` moved a point at which the model was not finite next to it and fitted again
+      (`fitting._stationarity.repair_point`), one line each saying what it moved; `None` otherwise.
     - `u`: the scaled parameters the solver worked with (`Problem.u_of` of `params`), to compare with another
       solver run on `Problem.residuals`.
     - `predictor`, `targets`, `weights`, `dataset`: how the model was fitted (the predictor, the target channels,
@@ -146,6 +148,7 @@ class FitResult:
     num_params: int
     metrics: dict[str, dict[str, dict[str, float | None]]]
     starts: list[dict] | None = None
+    repairs: list[str] | None = None
     u: Any = dataclasses.field(repr=False, default=None)
     predictor: Any = dataclasses.field(repr=False, default=None)
     targets: tuple[str, ...] = ()
@@ -193,6 +196,7 @@ class FitResult:
             "history": self.history,
             "history_steps": self.history_steps,
             "starts": self.starts,
+            "repairs": self.repairs,
         }
 
     def report(self) -> str:
@@ -217,6 +221,8 @@ class FitResult:
                                      + ("" if st["success"] else f" ({_START_CODES.get(st['code'], st['code'])})")
                                      for st in self.starts)
                          + ("" if fits > 1 else " (* reported)"))
+        for note in self.repairs or ():
+            lines.append(f"  start repaired: {note}")
         lines.append("parameters (value ± standard error):")
         w = max(len(n) for n in self.parameter_names)
         for n, v, s, st in zip(self.parameter_names, self.values, self.std_errors, self.std_error_status):

@@ -30,7 +30,7 @@ from ._solver import (
     as_progress_meter,
     iterate,
 )
-from ._stationarity import descent_point, stationarity_verdict
+from ._stationarity import NOT_FINITE_NEARBY, descent_point, repair_point, stationarity_verdict
 
 
 class PrecisionWarning(UserWarning):
@@ -405,12 +405,39 @@ def fit(
     """Calibrate `model` on `dataset` by weighted least squares: `solve(Problem(model, dataset, ...), ...)`.
 
     See `Problem` for `predictor`, `targets`, `free`, `weights`, `scales` and `solve` for the solver options.
+    A fit that fails because the model is not finite next to where it stopped (a start whose Jacobian is not finite,
+    a point every trial around which is not: `stuck_where_not_finite`) is repaired: that point is moved to the
+    nearest one where the model is finite next to it (`fitting._stationarity.repair_point`) and fitted again from
+    there, alone; `result.repairs` says what was moved (or that nothing helped, the failed fit then returned).
 
     ```python
     result = fitting.fit(actuator, dataset, free=["hysteresis", "dynamics"], smoothing=(0.05, 0.0))
     print(result.report())
     ```
     """
-    problem = Problem(model, dataset, predictor=predictor, targets=targets, free=free, weights=weights, scales=scales,
-                      jacobian_chunk=jacobian_chunk)
-    return solve(problem, **solve_options)
+    options = dict(predictor=predictor, targets=targets, free=free, weights=weights, scales=scales,
+                   jacobian_chunk=jacobian_chunk)
+    problem = Problem(model, dataset, **options)
+    result = solve(problem, **solve_options)
+    if not stuck_where_not_finite(result):
+        return result
+    # the fit could not leave its start (or the point it reached) because the model is not finite next to it: move
+    # that point to the nearest one where it is (`repair_point`) and fit again from there
+    repair = repair_point(problem, result.u)
+    if repair is None:
+        return result
+    note = f"the fit stopped at {'its start' if result.accepted_steps == 0 else 'a point'} ({result.code}): "
+    note += repair.describe()
+    if repair.u is None:
+        return dataclasses.replace(result, repairs=[note])
+    note += f"; fitted again from there (the first attempt: {result.steps} steps)"
+    repaired = problem.params(jnp.asarray(repair.u, dtype=problem.u0.dtype))
+    again = solve(Problem(repaired, dataset, **options), **{**solve_options, "starts": None})
+    return dataclasses.replace(again, repairs=[note])
+
+
+def stuck_where_not_finite(result: FitResult) -> bool:
+    """Whether a fit failed because the model is not finite at or next to the point it stopped at: the Jacobian at
+    its start, or every trial around its last point (`fit` then repairs that point)."""
+    return not result.success and (result.code == "nonfinite_initial"
+                                   or (result.code == "not_stationary" and NOT_FINITE_NEARBY in result.reason))

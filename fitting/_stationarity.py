@@ -1,6 +1,7 @@
 """Is a fit's end point a minimum? MINPACK's gradient test, and for the piecewise smooth models (the exact hysteresis
 operators) one-sided probes of the cost; the point past a kink that `fitting.solve` restarts from."""
 
+import dataclasses
 from typing import Any
 
 import equinox as eqx
@@ -155,7 +156,116 @@ def stationarity_verdict(problem, u, lin: Linearisation, verdict: Verdict, *, in
                        f"direction at a one-sided slope of {slope:+.1e} in gtol's units (gtol = {gtol:g}): the "
                        "kinks of the exact, piecewise smooth model stop every step within a short distance")
     why = (f"the cost falls along a probed direction (slope {slope:+.1e} in gtol's units)"
-           if slope < -gtol else "the model is not finite next to this point")
+           if slope < -gtol else NOT_FINITE_NEARBY)
     return Verdict("not_stationary",
                    f"stopped where the cost is not stationary (max |cos(r, J_i)| = {gradient_cosine:.2e} > "
                    f"gtol = {gtol:g}; {why}): the trust region shrank without a decrease")
+
+
+NOT_FINITE_NEARBY = "the model is not finite next to this point"
+"""The reason `stationarity_verdict` gives for a point the fit cannot leave because its neighbours' predictions are
+not finite (`repair_point` moves such a point)."""
+
+REPAIR_STEPS = tuple(10.0**k for k in range(-8, 1))
+"""The moves `repair_point` tries for one scaled parameter, relative to max(1, |u_j|), smallest first."""
+
+_NEIGHBOUR = 1e-7
+"""The relative distance at which `repair_point` probes a scaled parameter's two neighbours."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Repair:
+    """What `repair_point` did: `u`, the moved scaled parameters (`None`: no move made the point finite next to
+    it), `moved`, per moved parameter its name and physical value before and after, and `why`, what was not
+    finite."""
+
+    u: Any
+    moved: tuple[tuple[str, float, float], ...]
+    why: str
+
+    def describe(self) -> str:
+        """One sentence for the report."""
+        if self.u is None:
+            return f"{self.why}, and no move of one parameter by up to its own size made it finite: left as it was"
+        moves = ", ".join(f"{n} from {a:.6g} to {b:.6g}" for n, a, b in self.moved)
+        return f"{self.why}: moved {moves}"
+
+
+def repair_point(problem, u) -> Repair | None:
+    r"""Move a point where the model is not finite next to it (a start whose Jacobian is not finite, a fit stopped by
+    non-finite neighbours) to a near point where it is; `None` when it is finite next to it already.
+
+    First, each scaled parameter $u_j$ one of whose neighbours $u_j \pm 10^{-7}\max(1, |u_j|)$ gives non-finite
+    residuals (the point lies on the edge of the region where the model is defined: a square root at zero, a bound
+    reached by an unconstrained parameter) is moved alone by the smallest of `REPAIR_STEPS` (times
+    $\max(1, |u_j|)$), to either side, after which the residuals there and at both its neighbours are finite (the
+    lower cost of the two sides when both are). Then, while the linearisation (`problem.normal_equations`) is not
+    finite although every neighbour is (a derivative infinite at the point: forward mode then spreads NaN to every
+    column, so the columns do not say which parameter it is), each parameter is tried alone at the two smallest
+    steps, to either side, until one gives a finite linearisation. A point whose own residuals are not finite is
+    not repaired here (`u` `None`)."""
+    u = np.asarray(u, dtype=float)
+    names = problem.parameter_names()
+    if not np.isfinite(_probe_cost(problem, u)):
+        return Repair(None, (), "the model's predictions are not finite at the point")
+    edge = [j for j in range(u.size) if not _finite_neighbours(problem, u, j)]
+    new, moved = u.copy(), list(edge)
+    for j in edge:
+        new = _move(problem, new, j)
+        if new is None:
+            return Repair(None, (), _why(names, edge))
+    if not _finite_linearisation(problem, new):
+        found = None
+        for step in REPAIR_STEPS[:2]:
+            for j in range(u.size):
+                for s in (1.0, -1.0):
+                    v = new + s * step * max(1.0, abs(float(new[j]))) * np.eye(u.size)[j]
+                    if np.isfinite(_probe_cost(problem, v)) and _finite_linearisation(problem, v):
+                        found = (j, v)
+                        break
+                if found:
+                    break
+            if found:
+                break
+        if found is None:
+            return Repair(None, (), _why(names, edge))
+        moved.append(found[0])
+        new = found[1]
+    if not moved:
+        return None
+    before = np.asarray(problem.physical(jnp.asarray(u, dtype=problem.u0.dtype)))
+    after = np.asarray(problem.physical(jnp.asarray(new, dtype=problem.u0.dtype)))
+    return Repair(new, tuple((names[j], float(before[j]), float(after[j])) for j in moved), _why(names, edge))
+
+
+def _why(names, along) -> str:
+    if not along:
+        return "the model's Jacobian is not finite at the point"
+    return "the model is not finite next to the point (along " + ", ".join(names[j] for j in along) + ")"
+
+
+def _finite_linearisation(problem, u) -> bool:
+    r, g, h = (np.asarray(x) for x in problem.normal_equations(jnp.asarray(u, dtype=problem.u0.dtype)))
+    return bool(np.all(np.isfinite(r)) and np.all(np.isfinite(g)) and np.all(np.isfinite(h)))
+
+
+def _finite_neighbours(problem, u, j: int) -> bool:
+    h = _NEIGHBOUR * max(1.0, abs(float(u[j])))
+    return all(np.isfinite(_probe_cost(problem, u + s * h * np.eye(u.size)[j])) for s in (1.0, -1.0))
+
+
+def _move(problem, u, j: int):
+    """`u` with its `j`-th entry moved by the smallest step of `REPAIR_STEPS` after which the model is finite at and
+    next to it along `j` (the cheaper side when both are), else `None`."""
+    e = np.eye(u.size)[j]
+    size = max(1.0, abs(float(u[j])))
+    for step in REPAIR_STEPS:
+        found = []
+        for s in (1.0, -1.0):
+            v = u + s * step * size * e
+            c = _probe_cost(problem, v)
+            if np.isfinite(c) and _finite_neighbours(problem, v, j):
+                found.append((c, s))
+        if found:
+            return u + min(found)[1] * step * size * e
+    return None

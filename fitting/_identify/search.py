@@ -1,16 +1,18 @@
 r"""`identify`: find the structure of an actuator's model from its records, then calibrate it.
 
 The search is greedy, by stages, each fitting the current structure's neighbours in one respect and keeping the one
-`select` keeps among them and the current one (`validation.py`): the dynamics (0, 1, 2, 4 poles; first, since a creep
-fitted without a resonance the data have bends to mimic it), the creep (none; Kelvin–Voigt or lag, in series or in
-parallel; logarithmic), the hysteresis kind (every kind of `HYSTERESIS_KINDS`, so each is fitted and ranked once), the
-creep again (for the kind kept), one more creep lag, then zeros of the dynamics, an output polynomial, a prehistory and
-an input delay (`EXTRAS`), one stage each, each adding to the structure kept so far. It starts from `START`. A candidate
-is fitted once (a stage that meets it again reuses its fit), without the refinement rounds (`calibrate(...,
-refine_rounds=False)`) and with at most `CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the
-stage's current structure) for the blocks it shares with it (`warm_start`, `shared_blocks`), and its own rule-based
-start (`ModelConfig.starts` without the joint cold start, which the parent's fit stands in for). Finally the structure
-`select` keeps among every candidate is calibrated on every record with the whole pipeline (`fitting.calibrate`).
+`select` keeps among them and the current one (`validation.py`): the initial state (a fitted prehistory; first, since
+a record that starts away from the hysteresis' rest misleads every later comparison), the dynamics (0, 1, 2, 4 poles;
+before the creep, since a creep fitted without a resonance the data have bends to mimic it), the creep (none;
+Kelvin–Voigt or lag, in series or in parallel; logarithmic), the hysteresis kind (every kind of `HYSTERESIS_KINDS`,
+so each is fitted and ranked once), the creep again (for the kind kept), one more creep lag, then zeros of the
+dynamics, an output polynomial, a prehistory (where the first stage did not keep one) and an input delay (`EXTRAS`),
+one stage each, each adding to the structure kept so far. It starts from `START`. A candidate is fitted once (a stage
+that meets it again reuses its fit), without the refinement rounds (`calibrate(..., refine_rounds=False)`) and with at
+most `CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the stage's current structure) for the
+blocks it shares with it (`warm_start`, `shared_blocks`), and its own data-driven start (`_warm_and_own`: the joint
+cold start only where it changes the parent's hysteresis or creep). Finally the structure `select` keeps among every
+candidate is calibrated on every record with the whole pipeline (`fitting.calibrate`).
 """
 
 import dataclasses
@@ -54,7 +56,8 @@ CANDIDATE_MAX_STEPS = 300
 @dataclasses.dataclass(frozen=True)
 class Candidate:
     """One structure the search fitted: its CONFIG, its fit on the training records, its number of fitted
-    parameters, its training and validation scores (RMSE over the noise), its fit's code and time."""
+    parameters, its training and validation scores (RMSE over the noise), its fit's code and time, and what its fit
+    repaired (`FitResult.repairs`: a start at which the model was not finite next to it, moved)."""
 
     structure: Structure
     config: ModelConfig
@@ -64,11 +67,12 @@ class Candidate:
     code: str
     seconds: float
     errors: np.ndarray = dataclasses.field(repr=False)
+    repairs: tuple[str, ...] = ()
 
     def row(self) -> dict:
         return {"structure": self.structure.label(), "config": self.config.text, "parameters": self.parameters,
                 "training_rmse_over_noise": self.training, "validation_rmse_over_noise": self.validation,
-                "code": self.code, "seconds": round(self.seconds, 3)}
+                "code": self.code, "seconds": round(self.seconds, 3), "repairs": list(self.repairs)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +108,8 @@ class Identification:
             c = self.candidates[i]
             mark = "*" if i == self.kept else "~" if self.within[i] else " "
             lines.append(f"  {mark} {c.structure.label():<{width}}  {c.parameters:>6}  {c.training:>11.3f}  "
-                         f"{c.validation:>11.3f}  {c.seconds:>7.1f}  {c.code}")
+                         f"{c.validation:>11.3f}  {c.seconds:>7.1f}  {c.code}{' (repaired)' if c.repairs else ''}")
+        lines += [f"  repaired, {c.structure.label()}: {note}" for c in self.candidates for note in c.repairs]
         return "\n".join(lines)
 
     def report(self) -> str:
@@ -170,6 +175,9 @@ def identify(dataset, *, base: str | ModelConfig | None = None, max_steps: int |
     log(f"structure identification: {parts.description}")
     search = _Search(parts, base_text, fixed, log)
     current = search.stage([START], None)
+    # the initial state first: a record that starts away from the hysteresis' rest (the sensor's reading before the
+    # drive, a history of earlier drives) misleads every later comparison while it is not modelled
+    current = search.stage(extra_neighbours(current, "prehistory"), current)
     for neighbours in (dynamics_neighbours, creep_neighbours, hysteresis_neighbours, creep_neighbours, deeper_creep):
         current = search.stage(neighbours(current), current)
     for what in EXTRAS:
@@ -204,9 +212,13 @@ def warm_start(config, start, fitted, shared: set[str]):
 
 
 def _warm_and_own(config, dataset, fitted, shared: set[str]) -> list:
-    """A candidate's two starts: from its parent's fit (`warm_start`) and its own rule-based start (the joint cold
-    start is not made: the parent's fit stands in for it)."""
-    own = config.starts(dataset, cold_start=False)[0]
+    """A candidate's two starts: from its parent's fit (`warm_start`) and its own data-driven start. Where it keeps
+    the parent's hysteresis and creep, that is the rule-based start (the parent's fit stands in for the joint cold
+    start); where it changes either, the one closest to the data of the rule-based and the joint cold start (the
+    parent's other blocks were fitted around another hysteresis or creep: measured on the 150 V record, series
+    creeps started from a parallel creep's fit without the cold start fitted 18x the noise in training, against
+    3.4-3.7x with it)."""
+    own = config.starts(dataset, cold_start=not {"hysteresis", "creep"} <= shared)[0]
     try:
         return [warm_start(config, own, fitted, shared), own]
     except PiezojaxValueError:  # a fitted value the candidate's reparametrisation refuses (at its bound)
@@ -329,7 +341,7 @@ class _Search:
         training = max((m.get("rmse_over_noise") or np.nan for chans in result.metrics.values()
                         for m in chans.values()), default=np.nan)
         c = Candidate(s, config, len(result.parameter_names), float(training), score(errors), result.code,
-                      time.perf_counter() - t0, errors)
+                      time.perf_counter() - t0, errors, tuple(result.repairs or ()))
         self.models[s] = result.model
         self.log(f"  {s.label()}: {c.parameters} parameters, RMSE/noise {c.training:.3f} training, "
                  f"{c.validation:.3f} validation ({c.code}, {c.seconds:.1f} s)")

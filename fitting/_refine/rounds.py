@@ -113,9 +113,10 @@ def refine(config, result, dataset, free, fit_args: dict, *, log: Callable = sil
 
 def whole_run(result, fits: list):
     """`result`, one of `fits` (every fit `refine` ran, the first fit first), with the counts and the time of all
-    of them, and the first fit's initial cost and starts (each marked `first_of`: how many fits ran); its history
-    is that of the fits up to `result` (each started from the one before: a round follows only a kept one), one
-    after the other (the cost jumps up where plays were re-seeded), counted in the steps of the fits before."""
+    of them, and the first fit's initial cost and starts (each marked `first_of`: how many fits ran), every fit's
+    repairs; its history is that of the fits up to `result` (each started from the one before: a round follows
+    only a kept one), one after the other (the cost jumps up where plays were re-seeded), counted in the steps of
+    the fits before."""
     history, history_steps, offset = [], [], 0
     for f in fits[: next(i for i, f in enumerate(fits) if f is result) + 1]:
         history += list(f.history)
@@ -125,4 +126,5 @@ def whole_run(result, fits: list):
         result, steps=sum(int(f.steps) for f in fits), accepted_steps=sum(int(f.accepted_steps) for f in fits),
         seconds=sum(float(f.seconds) for f in fits), initial_cost=fits[0].initial_cost,
         starts=[dict(st, first_of=len(fits)) for st in fits[0].starts] if fits[0].starts else fits[0].starts,
-        history=history, history_steps=history_steps)
+        repairs=[note for f in fits for note in f.repairs or ()] or None, history=history,
+        history_steps=history_steps)
