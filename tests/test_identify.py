@@ -190,4 +190,21 @@ def test_added_zeros_start_around_the_parents_fitted_poles():
     np.testing.assert_allclose(got.zero_zeta, [0.07], rtol=1e-12)
     kept = dataclasses.replace(parent, zeros=2, polynomial=2)
     assert S.extra_neighbours(kept, "prehistory") == [dataclasses.replace(kept, prehistory=True)]
-    assert S.extra_neighbours(kept, "zeros") == [] and len(S.extra_neighbours(parent)) == 4
+    assert S.extra_neighbours(kept, "zeros") == [] and len(S.extra_neighbours(parent)) == 5
+    assert S.extra_neighbours(parent, "elements") == [dataclasses.replace(parent, elements=8)]
+    assert S.extra_neighbours(dataclasses.replace(parent, elements=16), "elements") == []
+    # twice the plays: the child starts where its parent ended (its plays kept, new ones between them, nearly dead)
+    more = dataclasses.replace(parent, elements=8, polynomial=2)
+    poly_parent = dataclasses.replace(parent, polynomial=2)
+    assert "hysteresis plays" in shared_blocks(more, poly_parent)
+    fitted = pj.unwrap(fitting.parse_config(poly_parent.toml(), "p").starts(rec)[0])
+    cfg = fitting.parse_config(more.toml(), "c")
+    child = pj.unwrap(warm_start(cfg, cfg.starts(rec)[0], fitted, shared_blocks(more, poly_parent)))
+    r = np.asarray(fitted.hysteresis.hysteresis.thresholds)
+    got = child.hysteresis.hysteresis
+    np.testing.assert_allclose(got.thresholds, np.sort(np.r_[r, 0.5 * (r[1:] + r[:-1]), 1.5 * r[-1] - 0.5 * r[-2]]),
+                               rtol=1e-12)
+    np.testing.assert_allclose(child.hysteresis.coefficients, fitted.hysteresis.coefficients, rtol=1e-12)
+    x = jnp.asarray(v)
+    y_parent, y_child = np.asarray(fitted.hysteresis(x)), np.asarray(child.hysteresis(x))
+    assert np.max(np.abs(y_child - y_parent)) < 5e-3 * np.ptp(y_parent)

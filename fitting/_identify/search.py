@@ -5,14 +5,15 @@ The search is greedy, by stages, each fitting the current structure's neighbours
 a record that starts away from the hysteresis' rest misleads every later comparison), the dynamics (0, 1, 2, 4 poles;
 before the creep, since a creep fitted without a resonance the data have bends to mimic it), the creep (none;
 Kelvin–Voigt or lag, in series or in parallel; logarithmic), the hysteresis kind (every kind of `HYSTERESIS_KINDS`,
-so each is fitted and ranked once), the creep again (for the kind kept), one more creep lag, then zeros of the
-dynamics, an output polynomial, a prehistory (where the first stage did not keep one) and an input delay (`EXTRAS`),
-one stage each, each adding to the structure kept so far. It starts from `START`. A candidate is fitted once (a stage
-that meets it again reuses its fit), without the refinement rounds (`calibrate(..., refine_rounds=False)`) and with at
-most `CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the stage's current structure) for the
-blocks it shares with it (`warm_start`, `shared_blocks`), and its own data-driven start (`_warm_and_own`: the joint
-cold start only where it changes the parent's hysteresis or creep). Finally the structure `select` keeps among every
-candidate is calibrated on every record with the whole pipeline (`fitting.calibrate`).
+so each is fitted and ranked once), the creep again (for the kind kept), one more creep lag, then twice the plays or
+elements, zeros of the dynamics, an output polynomial, a prehistory (where the first stage did not keep one) and an
+input delay (`EXTRAS`), one stage each, each adding to the structure kept so far. It starts from `START`. A candidate
+is fitted once (a stage that meets it again reuses its fit), without the refinement rounds (`calibrate(...,
+refine_rounds=False)`) and with at most `CANDIDATE_MAX_STEPS` steps, from two starts together: its parent's fit (the
+stage's current structure) for the blocks it shares with it (`warm_start`, `shared_blocks`), and its own data-driven
+start (`_warm_and_own`: the joint cold start only where it changes the parent's hysteresis or creep). Finally the
+structure `select` keeps among every candidate is calibrated on every record with the whole pipeline
+(`fitting.calibrate`).
 """
 
 import dataclasses
@@ -198,6 +199,8 @@ def warm_start(config, start, fitted, shared: set[str]):
     model = pj.unwrap(start)
     if "dynamics poles" in shared:
         model = _with_poles(model, fitted.dynamics)
+    if "hysteresis plays" in shared:
+        model = _with_more_plays(model, fitted.hysteresis)
     for name in ("hysteresis", "creep", "dynamics", "offset", "prehistory", "delay"):
         if name not in shared or not hasattr(model, name):
             continue
@@ -233,6 +236,9 @@ def shared_blocks(child: Structure, parent: Structure) -> set[str]:
     if (child.hysteresis, child.elements) == (parent.hysteresis, parent.elements) and (
             child.polynomial in (0, parent.polynomial) or not parent.polynomial):
         out.add("hysteresis")
+    elif (child.hysteresis == parent.hysteresis in ("prandtl_ishlinskii", "play")
+          and child.elements > parent.elements and child.polynomial == parent.polynomial):
+        out.add("hysteresis plays")  # more plays than the parent's: its plays kept, new ones between them
     if (child.creep, child.creep_order, child.creep_structure) == (parent.creep, parent.creep_order,
                                                                    parent.creep_structure):
         out.add("creep")
@@ -241,6 +247,38 @@ def shared_blocks(child: Structure, parent: Structure) -> set[str]:
     elif child.dynamics == parent.dynamics and not parent.zeros:
         out.add("dynamics poles")  # zeros added to the parent's poles
     return out
+
+
+def _with_more_plays(model, fitted):
+    """`model` whose PI or play operator has more plays than `fitted`'s (the parent's fitted hysteresis, of the same
+    kind, output polynomial and all): the parent's plays at their thresholds and weights (its `w0`, coefficients
+    and scale too), the others at thresholds halfway between the parent's (past the last one by half its last
+    spacing, once there is no gap left) with 1e-3 of the largest weight (a zero weight is a flat spot of the
+    Positive map): the parent's model to within those small weights, so the child starts where its parent ended."""
+    mine = model.hysteresis
+    inner = lambda h: h.hysteresis if isinstance(h, pj.OutputPolynomial) else h  # noqa: E731
+    a, b = inner(mine), inner(fitted)
+    if type(a) is not type(b) or type(mine) is not type(fitted) or not hasattr(a, "thresholds"):
+        return model
+    r, w = np.asarray(b.thresholds, float), np.asarray(b.weights, float)
+    n = np.size(a.thresholds)
+    if n <= r.size or r.size < 2:
+        return model
+    extra = list(0.5 * (r[1:] + r[:-1]))
+    step = r[-1] - r[-2]
+    while len(extra) < n - r.size:
+        extra.append(r[-1] + 0.5 * step * (len(extra) - r.size + 2))
+    extra = np.asarray(extra[: n - r.size])
+    thresholds = np.concatenate([r, extra])
+    weights = np.concatenate([w, np.full(extra.size, 1e-3 * float(np.max(w)))])
+    order = np.argsort(thresholds, kind="stable")
+    new = eqx.tree_at(lambda h: (h.thresholds, h.weights), a, (jnp.asarray(thresholds[order], a.thresholds.dtype),
+                                                                jnp.asarray(weights[order], a.weights.dtype)))
+    if hasattr(a, "w0"):
+        new = eqx.tree_at(lambda h: h.w0, new, b.w0)
+    if isinstance(mine, pj.OutputPolynomial):
+        new = eqx.tree_at(lambda h: h.hysteresis, fitted, new)
+    return eqx.tree_at(lambda m: m.hysteresis, model, new)
 
 
 def _with_poles(model, fitted):

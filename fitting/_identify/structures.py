@@ -158,15 +158,22 @@ def hysteresis_neighbours(s: Structure) -> list[Structure]:
             for k in HYSTERESIS_KINDS]
 
 
-EXTRAS = ("zeros", "polynomial", "prehistory", "delay")
+EXTRAS = ("elements", "zeros", "polynomial", "prehistory", "delay")
 """The last stages, one at a time, in this order: each adds one part to the structure kept so far."""
+
+MAX_ELEMENTS = 16
+"""The most plays or elements the `"elements"` stage gives a PI, play or Maxwell-slip operator."""
 
 
 def extra_neighbours(s: Structure, what: str | None = None) -> list[Structure]:
-    """`s` with the part `what` of `EXTRAS` where it lacks it (every one of them for `None`): zeros in its dynamics
-    (a pair, an antiresonance, with two poles or more; one real zero with one pole), an output polynomial of degree
-    2, a prehistory, an input delay."""
+    """`s` with the part `what` of `EXTRAS` where it lacks it (every one of them for `None`): twice the plays or
+    elements of a PI, play or Maxwell-slip operator (up to `MAX_ELEMENTS`; a finer staircase of thresholds), zeros
+    in its dynamics (a pair, an antiresonance, with two poles or more; one real zero with one pole), an output
+    polynomial of degree 2, a prehistory, an input delay."""
     out = []
+    if (what in (None, "elements") and s.hysteresis in ("prandtl_ishlinskii", "play", "maxwell_slip")
+            and s.elements < MAX_ELEMENTS):
+        out.append(dataclasses.replace(s, elements=min(2 * s.elements, MAX_ELEMENTS)))
     if what in (None, "zeros") and s.dynamics and not s.zeros:
         out.append(dataclasses.replace(s, zeros=2 if s.dynamics >= 2 else 1))
     if what in (None, "polynomial") and s.hysteresis != "none" and not s.polynomial:
