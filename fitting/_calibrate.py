@@ -21,6 +21,7 @@ from ._problem import free_mask, tangent_block
 from ._refine import refine, silent
 from ._results import FitResult, lack_of_fit
 from ._solve import fit
+from ._timing import phase
 
 MIN_FIT_SAMPLES = 20
 """Fewest samples per record that `piezojax fit` accepts (the data-driven initial values need a few periods of
@@ -164,7 +165,7 @@ def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool =
     release_memory_if_long(config, dataset, num_free)
     log(f"{len(dataset)} experiment(s), {sum(e.n for e in dataset)} samples; fitting {', '.join(targets)}")
     log("initial values from the data")
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, phase("starts"):
         warnings.simplefilter("always", StartWarning)
         made = config.starts(dataset) if starts is None else list(starts(config, dataset))
     if not made:
@@ -178,10 +179,11 @@ def calibrate(config, dataset, *, max_steps: int | None = None, progress: bool =
     fit_args = dict(predictor=config.predictor(), targets=targets, free=free, weights=config.weights,
                     smoothing=config.smoothing, max_steps=max_steps if max_steps is not None else config.max_steps,
                     progress=progress, method=config.method)
-    result = fit(made[0], dataset, starts=made if len(made) > 1 else None, **fit_args)
-    reseeded = None
-    if result.code != "interrupted" and refine_rounds:
-        result, reseeded = refine(config, result, dataset, free, fit_args, log=log, interrupted=interrupted)
+    with phase("steps"):
+        result = fit(made[0], dataset, starts=made if len(made) > 1 else None, **fit_args)
+        reseeded = None
+        if result.code != "interrupted" and refine_rounds:
+            result, reseeded = refine(config, result, dataset, free, fit_args, log=log, interrupted=interrupted)
     other = []
     try:
         derived = config.derived_values(result.model)

@@ -126,12 +126,19 @@ def test_fit_writes_complete_folder_and_recovers_truth(fitted, work):
     for name, value in expect.items():
         assert abs(p[name]["value"] / value - 1) < 0.02, (name, p[name]["value"], value)
     assert res["cli"]["targets"] == ["displacement"] and len(res["cli"]["data"]) == 4
+    # where the command's time went: its phases, compilation taken out of each, adding up to the whole
+    t = res["timings"]
+    assert list(t) == ["imports", "read", "starts", "steps", "write", "compile", "other", "total"]
+    assert all(v >= 0 for v in t.values()) and t["steps"] > 0 and t["compile"] > 0 and t["write"] > 0
+    assert sum(v for k, v in t.items() if k != "total") == pytest.approx(t["total"], abs=0.01)
+    assert t["steps"] + t["compile"] <= t["total"]
 
 
 def _without_times(value):
     """`value` (parsed JSON) without its wall-clock times."""
     if isinstance(value, dict):
-        return {k: _without_times(v) for k, v in value.items() if k not in ("seconds", "piezojax_version")}
+        return {k: _without_times(v) for k, v in value.items()
+                if k not in ("seconds", "piezojax_version", "timings")}
     if isinstance(value, list):
         return [_without_times(v) for v in value]
     return value
@@ -688,3 +695,28 @@ def test_shipped_config_calibrates_the_measured_actuator(tmp_path, capsys):
     rmse_um = 1e6 * np.sqrt(np.mean((pred["displacement"][held] - 1e-6 * raw[held, 2]) ** 2))
     assert scored["samples"] == held.sum() and scored["rmse"] == pytest.approx(1e-6 * rmse_um, rel=1e-6)
     assert rmse_um <= 0.065, rmse_um
+
+
+def test_timings_take_compilation_out_of_each_phase_once():
+    """`fitting._timing.Timings`: overlapping compilation spans (a trace inside a trace) count once, inside a phase
+    they are taken out of it, and the phases, `compile` and `other` add up to the whole; a jitted function's first
+    call is seen as compilation."""
+    import jax
+    import jax.numpy as jnp
+
+    from fitting._timing import Timings, phase
+
+    t = Timings(start=100.0)
+    t.end = 120.0
+    t.add("read", 100.0, 102.0)
+    t.add("steps", 105.0, 115.0)
+    t.compile_spans += [(106.0, 109.0), (107.0, 108.0), (114.0, 116.0)]  # nested, and past the end of `steps`
+    s = t.summary()
+    assert s["read"] == 2.0 and s["compile"] == 5.0 and s["steps"] == 10.0 - 4.0
+    assert s["other"] == pytest.approx(20.0 - 2.0 - 6.0 - 5.0) and s["total"] == 20.0
+    with Timings() as live:
+        with phase("steps"):
+            jax.jit(lambda x: jnp.sin(x) * 2.5 + 0.125)(jnp.arange(7.0)).block_until_ready()
+    assert live.compile_spans and live.summary()["compile"] > 0
+    with phase("steps"):  # no recording: nothing happens
+        pass

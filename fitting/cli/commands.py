@@ -1,7 +1,10 @@
 """The commands: `fit`, `predict`, `simulate`; each parses nothing and writes its outputs atomically."""
 
+import json
 from pathlib import Path
 
+from .._timing import phase
+from . import common
 from .common import _check_output, _data_settings, _error, _given_units, _info, _load_data, _out, _safe_name, _windowed
 from .signals import _check_interrupted, _consume_interrupt, _hold_signals, _interrupt_status, _pending_interrupt
 from .status import EXIT_NOT_CONVERGED, EXIT_OK
@@ -10,6 +13,32 @@ from .status import EXIT_NOT_CONVERGED, EXIT_OK
 
 
 def _cmd_fit(args) -> int:
+    from .._timing import Timings, process_start
+
+    timings = Timings(start=(process_start() if common.AS_PROGRAM else None) or common.CALLED_AT)
+    with timings:
+        timings.add("imports", timings.start, common.IMPORTED_AT or timings.start)
+        with phase("imports"):
+            import fitting  # noqa: F401  (the command's own imports count in `imports`)
+
+            from .._calibrate import calibrate  # noqa: F401
+            from .._identify import identify  # noqa: F401
+        status = _fit(args, timings)
+    return status
+
+
+def _timings_out(timings, folder, quiet: bool) -> None:
+    """`timings` into the `result.json` of the fit folder being written (`folder`) and on stderr."""
+    import fitting
+
+    path = Path(folder) / "result.json"
+    result = json.loads(path.read_text())
+    result["timings"] = timings.summary()
+    fitting.files.save_json(path, result)
+    _info(f"time {timings.line()} (seconds; compile: tracing and compiling, out of the others)", quiet)
+
+
+def _fit(args, timings) -> int:
     import fitting
 
     from .._calibrate import calibrate
@@ -19,7 +48,7 @@ def _cmd_fit(args) -> int:
     if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
         raise _error(f"--max-steps must be >= 1 and <= {MAX_STEPS} (the documented upper bound), got {args.max_steps}")
     if args.auto:
-        return _cmd_fit_auto(args)
+        return _cmd_fit_auto(args, timings)
     if args.base is not None:
         raise _error("--config gives the fixed tables of a structure search: use it with --auto (without --auto, "
                      "CONFIG is the first argument)")
@@ -30,17 +59,20 @@ def _cmd_fit(args) -> int:
     config = load_config(args.config)
     settings = _data_settings(args, config.data)
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
-        dataset, unit_warnings = _load_data(args.data, settings, args.group)
-        if args.window is not None:
-            dataset = _windowed(dataset, args.window)
+        with phase("read"):
+            dataset, unit_warnings = _load_data(args.data, settings, args.group)
+            if args.window is not None:
+                dataset = _windowed(dataset, args.window)
         cal = calibrate(config, dataset, max_steps=args.max_steps, progress=not quiet,
                         log=lambda m, warning=False: _info(m, quiet and not warning), interrupted=_pending_interrupt)
         result = cal.result
         if result.code == "interrupted":
             _consume_interrupt()  # the solver stopped at the interrupt and returned its last accepted point
         _info(f"writing {out}", quiet)
-        cal.write_files(tmp, figures=not args.no_figures, config_source=args.config, data=args.data,
-                        data_settings=settings, window=args.window, read_warnings=unit_warnings)
+        with phase("write"):
+            cal.write_files(tmp, figures=not args.no_figures, config_source=args.config, data=args.data,
+                            data_settings=settings, window=args.window, read_warnings=unit_warnings)
+        _timings_out(timings, tmp, quiet)
         _check_interrupted()
         _hold_signals()  # complete: from here the outcome is this run's, whatever arrives while it is renamed
     _out(cal.report())
@@ -53,7 +85,7 @@ def _cmd_fit(args) -> int:
     return EXIT_OK
 
 
-def _cmd_fit_auto(args) -> int:
+def _cmd_fit_auto(args, timings) -> int:
     """`piezojax fit --auto DATA... [--config CONFIG]`: the structure search (`fitting.identify`), then the folder
     of the structure kept."""
     import fitting
@@ -67,9 +99,10 @@ def _cmd_fit_auto(args) -> int:
     base = read_config_text(args.base) if args.base else None
     settings = _data_settings(args, parse_base(base, args.base).data if base is not None else {})
     with fitting.files.atomic_directory(out, overwrite=args.overwrite, kind="fit") as tmp:
-        dataset, unit_warnings = _load_data(data, settings, args.group)
-        if args.window is not None:
-            dataset = _windowed(dataset, args.window)
+        with phase("read"):
+            dataset, unit_warnings = _load_data(data, settings, args.group)
+            if args.window is not None:
+                dataset = _windowed(dataset, args.window)
         ident = fitting.identify(dataset, base=base, max_steps=args.max_steps, progress=not quiet,
                                  log=lambda m, warning=False: _info(m, quiet and not warning))
         _info(ident.table(), quiet)
@@ -78,8 +111,10 @@ def _cmd_fit_auto(args) -> int:
             _consume_interrupt()
         _info(f"writing {out}", quiet)
         source = args.base or str(Path(out) / "config.toml")  # without a base: the structure kept, written there
-        ident.write_files(tmp, figures=not args.no_figures, config_source=source, data=data, data_settings=settings,
-                          window=args.window, read_warnings=unit_warnings)
+        with phase("write"):
+            ident.write_files(tmp, figures=not args.no_figures, config_source=source, data=data,
+                              data_settings=settings, window=args.window, read_warnings=unit_warnings)
+        _timings_out(timings, tmp, quiet)
         _check_interrupted()
         _hold_signals()
     _out(ident.report())

@@ -3,6 +3,7 @@
 import contextlib
 import os
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -28,6 +29,16 @@ def _setup_jax(figures: bool = False) -> None:
             pj.enable_fast_cpu_scans()  # also retains freed memory: `fit` releases it for long records
         jax.config.update("jax_enable_x64", True)
         pj.enable_compilation_cache()  # a second run of the same shapes loads its programs ($PIEZOJAX_CACHE_DIR)
+    global IMPORTED_AT
+    IMPORTED_AT = time.time()
+
+
+IMPORTED_AT: float | None = None
+"""When `_setup_jax` finished (`time.time()`): the end of the command's imports (`fitting._timing`)."""
+CALLED_AT: float | None = None
+"""When `main` was last called (`time.time()`): where an in-process command's time starts."""
+AS_PROGRAM = False
+"""Whether this process is the `piezojax` program (`console_main`): its commands' time starts with the process."""
 
 
 def _info(msg: str, quiet: bool = False) -> None:

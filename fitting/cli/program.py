@@ -4,8 +4,10 @@ import contextlib
 import os
 import signal
 import sys
+import time
 import warnings
 
+from . import common
 from .commands import _cmd_fit, _cmd_predict, _cmd_simulate
 from .common import _info, _setup_jax, _silence_stdout
 from .parser import build_parser
@@ -35,6 +37,7 @@ def main(argv: list[str] | None = None, *, _restore_signals: bool = True) -> int
     main(["fit", "model.toml", "run1.csv", "--out", "run1_fit"])  # --out's parent folder must exist
     ```
     """
+    common.CALLED_AT = time.time()  # a command run in-process counts its time from here (`fitting._timing`)
     with _signals_handled(restore=_restore_signals):
         try:
             return _main(argv)
@@ -124,6 +127,7 @@ def console_main() -> None:
     signal would kill the process instead of leaving the status alone. Nothing is left to clean up by then: every
     output is written, fsynced and renamed, and the standard streams are flushed here."""
     status = None
+    common.AS_PROGRAM = True  # the command's time counts from the process' start
     try:
         status = main(_restore_signals=False)
         _hold_signals()
