@@ -405,10 +405,11 @@ def fit(
     """Calibrate `model` on `dataset` by weighted least squares: `solve(Problem(model, dataset, ...), ...)`.
 
     See `Problem` for `predictor`, `targets`, `free`, `weights`, `scales` and `solve` for the solver options.
-    A fit that fails because the model is not finite next to where it stopped (a start whose Jacobian is not finite,
-    a point every trial around which is not: `stuck_where_not_finite`) is repaired: that point is moved to the
-    nearest one where the model is finite next to it (`fitting._stationarity.repair_point`) and fitted again from
-    there, alone; `result.repairs` says what was moved (or that nothing helped, the failed fit then returned).
+    A fit that fails because the model is not finite at or next to where it stopped (a start whose Jacobian is not
+    finite, a point whose probes found non-finite neighbours and no descent: `stuck_where_not_finite`) is repaired:
+    that point is moved to a near point where the model is finite next to it (`fitting._stationarity.repair_point`)
+    and fitted again from there, alone; the better of the two fits is returned (`throw` applies to it), with
+    `result.repairs` saying what was moved and which was kept (or that nothing helped).
 
     ```python
     result = fitting.fit(actuator, dataset, free=["hysteresis", "dynamics"], smoothing=(0.05, 0.0))
@@ -418,26 +419,41 @@ def fit(
     options = dict(predictor=predictor, targets=targets, free=free, weights=weights, scales=scales,
                    jacobian_chunk=jacobian_chunk)
     problem = Problem(model, dataset, **options)
+    throw = solve_options.pop("throw", False)
     result = solve(problem, **solve_options)
-    if not stuck_where_not_finite(result):
-        return result
-    # the fit could not leave its start (or the point it reached) because the model is not finite next to it: move
-    # that point to the nearest one where it is (`repair_point`) and fit again from there
-    repair = repair_point(problem, result.u)
+    if stuck_where_not_finite(result):
+        result = _repaired(problem, result, dataset, options, solve_options)
+    if throw and not result.success:
+        raise FitError(result)
+    return result
+
+
+def _repaired(problem: Problem, result: FitResult, dataset, options: dict, solve_options: dict) -> FitResult:
+    """`result`, a fit stuck where the model is not finite next to the point it stopped at, fitted again from that
+    point moved (`repair_point`, probed at the smoothing level the fit stopped at): the better of the two fits (a
+    success first, then the lower cost), with both fits' steps and time, and a note in `repairs`."""
+    level = result.levels[-1]["smoothing"] if result.levels else None
+    probed = problem if level is None else problem.with_frozen(set_smoothing(problem.frozen, level))
+    repair = repair_point(probed, result.u)
     if repair is None:
         return result
-    note = f"the fit stopped at {'its start' if result.accepted_steps == 0 else 'a point'} ({result.code}): "
-    note += repair.describe()
+    note = (f"the fit stopped at {'its start' if result.accepted_steps == 0 else 'a point'} ({result.code}): "
+            + repair.describe())
     if repair.u is None:
         return dataclasses.replace(result, repairs=[note])
-    note += f"; fitted again from there (the first attempt: {result.steps} steps)"
-    repaired = problem.params(jnp.asarray(repair.u, dtype=problem.u0.dtype))
-    again = solve(Problem(repaired, dataset, **options), **{**solve_options, "starts": None})
-    return dataclasses.replace(again, repairs=[note])
+    moved = problem.params(jnp.asarray(repair.u, dtype=problem.u0.dtype))
+    again = solve(Problem(moved, dataset, **options), **{**solve_options, "starts": None})
+    better = (again.success, -again.cost) > (result.success, -result.cost) if np.isfinite(again.cost) else False
+    note += (f"; fitted again from there ({again.code}, cost {again.cost:.4e}"
+             + (", kept" if better else f", not kept: the first fit's {result.cost:.4e} stands") + ")")
+    kept = again if better else result
+    return dataclasses.replace(kept, repairs=[note], steps=result.steps + again.steps,
+                               accepted_steps=result.accepted_steps + again.accepted_steps,
+                               seconds=result.seconds + again.seconds)
 
 
 def stuck_where_not_finite(result: FitResult) -> bool:
     """Whether a fit failed because the model is not finite at or next to the point it stopped at: the Jacobian at
-    its start, or every trial around its last point (`fit` then repairs that point)."""
+    its start, or a probe next to its last point where no probe lowered the cost (`fit` then repairs that point)."""
     return not result.success and (result.code == "nonfinite_initial"
                                    or (result.code == "not_stationary" and NOT_FINITE_NEARBY in result.reason))

@@ -94,7 +94,8 @@ class Timings:
 
 @contextlib.contextmanager
 def phase(name: str):
-    """Mark the block as the phase `name` of the `Timings` recording, if any (nested phases count in each)."""
+    """Mark the block as the phase `name` of the `Timings` recording, if any. Phases do not nest (a nested one
+    would count in both, and `other` no longer make up the rest)."""
     t = _recording.get()
     start = time.time()
     try:

@@ -100,8 +100,9 @@ def test_a_configs_start_on_the_edge_of_the_models_domain_is_repaired_fitted_and
     (note,) = result.repairs
     assert note.startswith("the fit stopped at its start (nonfinite_initial): the model is not finite next to the "
                            "point (along hysteresis.edge): moved hysteresis.edge from 0 to ")
+    assert note.endswith(", kept)") and "fitted again from there (successful, cost " in note
     moved_to = float(note.split("from 0 to ")[1].split(";")[0])
-    assert 0 < moved_to <= 1e-6  # the smallest move that leaves it finite on both sides
+    assert 0 < moved_to <= 1.0  # to the side where the model is defined, within the largest move
     fitted = pj.unwrap(result.model).hysteresis
     assert float(fitted.edge) == pytest.approx(0.25, rel=2e-3)
     assert float(fitted.weight) == pytest.approx(2e-7, rel=1e-4)
@@ -124,4 +125,7 @@ def test_a_start_with_an_infinite_derivative_is_moved_and_one_finite_only_at_its
     else:
         assert not result.success and result.code == "nonfinite_initial"
         assert note.endswith("the model is not finite next to the point (along hysteresis.edge), and no move of one "
-                             "parameter by up to its own size made it finite: left as it was")
+                             "parameter (by up to max(1, |u|) in the solver's scaled units) made it finite: left as it "
+                             "was")
+        with pytest.raises(fitting.FitError):  # `throw` after the repair was tried
+            fitting.fit(start, ds, max_steps=200, progress=False, throw=True)

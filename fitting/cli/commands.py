@@ -17,7 +17,7 @@ def _cmd_fit(args) -> int:
 
     timings = Timings(start=(process_start() if common.AS_PROGRAM else None) or common.CALLED_AT)
     with timings:
-        timings.add("imports", timings.start, common.IMPORTED_AT or timings.start)
+        timings.add("imports", timings.start, max(common.IMPORTED_AT or timings.start, timings.start))
         with phase("imports"):
             import fitting  # noqa: F401  (the command's own imports count in `imports`)
 
