@@ -67,6 +67,9 @@ _EXPORTS = {
     "._warm_up": ("WarmUp", "warm_up"),
 }
 _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
+# The public names, every one `_EXPORTS` gives (`fitting.files`, also loaded on first use, is a helper submodule for
+# the command line and the experiments, not part of the calibration API)
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str):

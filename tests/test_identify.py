@@ -208,3 +208,16 @@ def test_added_zeros_start_around_the_parents_fitted_poles():
     x = jnp.asarray(v)
     y_parent, y_child = np.asarray(fitted.hysteresis(x)), np.asarray(child.hysteresis(x))
     assert np.max(np.abs(y_child - y_parent)) < 5e-3 * np.ptp(y_parent)
+
+
+def test_a_preisach_candidates_grid_covers_the_records_span_and_one_row_below():
+    """The search lays a Preisach candidate's grid on the records' voltages: every level switches within them
+    except the lowest row, whose relays never switch off once on (the kind's default grid, symmetric about 0,
+    would leave half its levels unused on unipolar drives)."""
+    lo, hi = S.preisach_range(0.0, 100.0, 8)
+    grid = pj.Preisach.uniform(lo, hi, 8)
+    alpha, beta = np.unique(np.asarray(grid.alpha)), np.unique(np.asarray(grid.beta))
+    assert alpha.size == beta.size == 8
+    assert beta[0] < 0.0 < beta[1] and alpha[-1] < 100.0 and np.all(alpha[1:] > 0.0)
+    cfg = fitting.parse_config(S.Structure("preisach", 8).toml("", inputs=(0.0, 100.0)), "c")
+    assert cfg.hysteresis_options.range == (lo, hi)

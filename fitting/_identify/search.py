@@ -323,6 +323,8 @@ class _Search:
         self.candidates: list[Candidate] = []
         self.by_structure: dict[Structure, int] = {}
         self.models: dict[Structure, object] = {}  # each fitted candidate's model (unwrapped), its children's start
+        v = np.concatenate([e.v_in for e in parts.training])
+        self.inputs = (float(np.min(v)), float(np.max(v)))  # the voltages' span: a Preisach grid's range
 
     def stage(self, structures: list[Structure], current: Structure | None) -> Structure:
         """Fit the structures not fitted yet; the one `select` keeps among them and `current`."""
@@ -362,7 +364,7 @@ class _Search:
 
     def _fit(self, s: Structure, parent: Structure | None) -> Candidate:
         t0 = time.perf_counter()
-        text = s.toml(self.base)
+        text = s.toml(self.base, inputs=self.inputs)
         config = parse_config(text, f"candidate {s.label()}")
         config = dataclasses.replace(config, max_steps=min(config.max_steps, CANDIDATE_MAX_STEPS))
         fitted = None if parent is None else self.models.get(parent)

@@ -53,12 +53,16 @@ class Structure:
         parts += ["prehistory"] * self.prehistory + ["delay"] * self.delay
         return " + ".join(parts)
 
-    def tables(self) -> dict[str, str]:
-        """The structure's CONFIG tables, as TOML text by table name."""
+    def tables(self, inputs: tuple[float, float] | None = None) -> dict[str, str]:
+        """The structure's CONFIG tables, as TOML text by table name. `inputs`: the smallest and largest voltage of
+        the records, from which a Preisach operator's grid is laid (`preisach_range`; else the kind's default)."""
         out = {}
         h = [f'kind = "{self.hysteresis}"']
         if self.hysteresis in _ELEMENT_KEY:
             h.append(f"{_ELEMENT_KEY[self.hysteresis]} = {self.elements}")
+        if self.hysteresis == "preisach" and inputs is not None:
+            lo, hi = preisach_range(*inputs, self.elements)
+            h.append(f"range = [{lo!r}, {hi!r}]")
         if self.polynomial and self.hysteresis != "none":
             h.append(f"polynomial = {self.polynomial}")
         out["hysteresis"] = h
@@ -81,11 +85,11 @@ class Structure:
             out["input"] = ["delay = true"]
         return {table: "\n".join(lines) for table, lines in out.items()}
 
-    def toml(self, base: str = "") -> str:
+    def toml(self, base: str = "", inputs: tuple[float, float] | None = None) -> str:
         """The CONFIG of this structure: the tables of `base` (a CONFIG's text) as they are, and this structure's
-        tables that `base` does not give."""
+        tables that `base` does not give (`inputs` as for `tables`)."""
         given = fixed_tables(base)
-        own = [f"[{table}]\n{text}\n" for table, text in self.tables().items() if table not in given]
+        own = [f"[{table}]\n{text}\n" for table, text in self.tables(inputs).items() if table not in given]
         return "\n".join(own) + ("\n" + base if base.strip() else "")
 
     def normal(self) -> "Structure":
@@ -112,6 +116,16 @@ class Structure:
                     or (self.prehistory and self.hysteresis == "none")
                     or (self.hysteresis == "none" and self.creep == "none" and self.dynamics == 0)
                     or self.zeros > self.dynamics)
+
+
+def preisach_range(v_min: float, v_max: float, levels: int) -> tuple[float, float]:
+    r"""The range of a Preisach grid of `levels` levels for records whose voltage spans `[v_min, v_max]`: its cells
+    of side $h = (v_{\max} - v_{\min})/(\text{levels} - 1)$ cover the records' span and one row below it, so
+    every level but the lowest switches within the records and the lowest row's relays, once on, never switch off
+    (all relays whose switching-off value lies below the records behave alike). The kind's default, symmetric
+    about 0, leaves half its levels unused on unipolar drives."""
+    h = (v_max - v_min) / max(levels - 1, 1)
+    return (v_min - h, v_max)
 
 
 def fixed_tables(base: str) -> set[str]:
