@@ -221,3 +221,22 @@ def test_a_preisach_candidates_grid_covers_the_records_span_and_one_row_below():
     assert beta[0] < 0.0 < beta[1] and alpha[-1] < 100.0 and np.all(alpha[1:] > 0.0)
     cfg = fitting.parse_config(S.Structure("preisach", 8).toml("", inputs=(0.0, 100.0)), "c")
     assert cfg.hysteresis_options.range == (lo, hi)
+
+
+def test_the_table_says_when_no_structure_reached_the_noise():
+    """A search whose best candidate predicts the validation samples at 1.2 times the noise or more says that no
+    structure reached it (a plant outside the searched classes); one at about 1 does not."""
+    from fitting._identify.search import Candidate, Identification
+
+    def table(scores):
+        cands = [Candidate(S.Structure("prandtl_ishlinskii", 8, dynamics=d), None, 20 + d, v, v, "successful", 1.0,
+                           np.zeros(3)) for d, v in enumerate(scores)]
+        ident = Identification(None, cands, 0, [True] + [False] * (len(cands) - 1), "split", 10.0, 2.0)
+        return ident.table(), ident.reached_noise
+
+    text, reached = table([4.97, 6.1])
+    assert not reached
+    assert ("no structure reached the noise in validation: the best, PI(8), predicts the validation samples at "
+            "4.97x") in text
+    text, reached = table([1.03, 6.1])
+    assert reached and "no structure reached the noise" not in text

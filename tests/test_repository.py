@@ -338,7 +338,7 @@ FITTING_LAYERS = {
     "_calibrate": {"_config", "_data", "_problem", "_refine", "_results", "_solve", "_timing", "files"},
     "_fit_folder": {"_config", "_data", "_problem", "_results"},
     "_warm_up": {"_data", "_predict"},
-    "_identify": {"_calibrate", "_config", "_data", "_predict", "_problem", "_refine", "files"},
+    "_identify": {"_calibrate", "_config", "_data", "_predict", "_problem", "_refine", "_results", "files"},
     "cli": {"__init__", "_calibrate", "_config", "_data", "_identify", "_results", "_timing", "files"},
     "__init__": set(),  # its lazy loading reaches every part by name, not by import
 }

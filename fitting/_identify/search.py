@@ -35,6 +35,7 @@ from .._calibrate import Calibration, calibrate
 from .._config import ModelConfig, parse_config
 from .._data import Dataset, experiments_of
 from .._refine import silent
+from .._results import LACK_OF_FIT_RATIO
 from .structures import (
     EXTRAS,
     Structure,
@@ -111,7 +112,21 @@ class Identification:
             lines.append(f"  {mark} {c.structure.label():<{width}}  {c.parameters:>6}  {c.training:>11.3f}  "
                          f"{c.validation:>11.3f}  {c.seconds:>7.1f}  {c.code}{' (repaired)' if c.repairs else ''}")
         lines += [f"  repaired, {c.structure.label()}: {note}" for c in self.candidates for note in c.repairs]
+        if not self.reached_noise:
+            best = min(self.candidates, key=lambda c: c.validation)
+            lines.append(f"  no structure reached the noise in validation: the best, {best.structure.label()}, "
+                         f"predicts the validation samples at {best.validation:.2f}x the noise (one that explains "
+                         f"the data to their noise scores about 1; {LACK_OF_FIT_RATIO:g} or more is a lack of fit): "
+                         "the actuator shows something none of the searched structures has (e.g. a hysteresis that "
+                         "depends on the rate of the drive), or the records something the model does not (drift, "
+                         "a disturbance)")
         return "\n".join(lines)
+
+    @property
+    def reached_noise(self) -> bool:
+        """Whether the best candidate predicts the validation samples to within `LACK_OF_FIT_RATIO` (1.2) times
+        the noise."""
+        return min(c.validation for c in self.candidates) < LACK_OF_FIT_RATIO
 
     def report(self) -> str:
         return self.table() + "\n\n" + self.calibration.report()
@@ -120,7 +135,7 @@ class Identification:
         """The `identification` entry of `result.json`."""
         return {"candidates": [c.row() for c in self.candidates], "kept": self.kept, "within": self.within,
                 "split": self.split, "seconds": round(self.seconds, 3), "final_seconds": round(self.final_seconds, 3),
-                "chosen": self.chosen.structure.label(),
+                "chosen": self.chosen.structure.label(), "reached_noise": self.reached_noise,
                 "rule": f"the fewest fitted parameters whose mean squared validation error over the noise exceeds "
                         f"the best's by at most {Z:g} standard errors of the difference (its noise part)"}
 
