@@ -170,3 +170,4 @@ if TYPE_CHECKING:  # the same names for static analysis
         Verdict as Verdict,
     )
     from ._staged import staged_ivan2009 as staged_ivan2009
+    from ._warm_up import WarmUp as WarmUp, warm_up as warm_up

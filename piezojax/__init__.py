@@ -115,4 +115,25 @@ from ._parametrisation import (
     unwrap as unwrap,
 )
 
+# the public names (the API reference documents each; tests/test_docs.py checks both lists)
+__all__ = [
+    "AbstractBench", "AbstractCell", "AbstractCircuit", "AbstractController", "AbstractCreep",
+    "AbstractFusedCreep", "AbstractFusedHysteresis", "AbstractHysteresis", "AbstractHysteresisCell",
+    "AbstractLinearSystem", "AbstractObserver", "AbstractPlant", "AbstractReparam", "AbstractSelfSensingBench",
+    "Actuator", "ActuatorInverse", "ActuatorOutput", "AdaptiveInverseController", "BafumbaBench", "BoucWen",
+    "BoucWenOscillator", "Bounded", "ChargeIntegratorCircuit", "ChenBench", "ChenStagePlant", "Delay",
+    "DiscreteStateSpace", "DynamicImpedanceObserver", "ElectromechanicalActuator", "ElectromechanicalInverse",
+    "Estimate", "FeedforwardFeedback", "ForceDisplacementObserver", "Fractions", "GaussianPreisach",
+    "HysteresisInverse", "InverseFeedforward", "IvanBench", "KelvinVoigtCreep", "LagCreep", "LinearCreep",
+    "LogarithmicCreep", "LoopRecord", "MaxwellSlip", "NarxNetwork", "OrderedPositive", "OutputPolynomial",
+    "PID", "PiezojaxError", "PiezojaxValueError", "PlayOperator", "Positive", "PrandtlIshlinskii", "Preisach",
+    "QuantBench", "Record", "SampledInput", "ScaledHysteresis", "SensorLayerObserver", "SmartStackCircuit",
+    "StableTransferFunction", "StateSpace", "StopOperator", "TransferFunction", "TransimpedanceCircuit",
+    "butterworth", "charge_preisach", "closed_loop", "constrain", "discretise_state_space",
+    "enable_compilation_cache", "enable_fast_cpu_scans", "inv_softplus", "periodic_steps", "pi_cold_start",
+    "pi_weights_least_squares", "release_freed_memory", "retain_freed_memory", "set_parallel_scans", "setting",
+    "setting_key_paths", "simulate_ode", "softplus", "step_command", "time_step", "tracking_error_percent",
+    "train_narx_online", "unimorph_dynamics", "unwrap",
+]
+
 __version__ = "0.3.0"

@@ -37,11 +37,22 @@ def api_entries() -> list[str]:
             for m in re.findall(r"^::: *(\S+)", page.read_text(), flags=re.M)]
 
 
-def test_fitting_all_is_its_lazy_names():
+def test_fitting_all_is_its_lazy_names_and_its_static_imports():
+    """`fitting.__all__` is what it loads lazily, and its `if TYPE_CHECKING:` block (what static readers such as the
+    API reference's griffe see) imports each of those names; `piezojax.__all__` is every public name it binds."""
+    import ast
+
     import fitting
+    import piezojax
 
     assert sorted(fitting.__all__) == sorted(fitting._LAZY)
     assert not [n for n in fitting.__all__ if n.startswith("_")]
+    tree = ast.parse((ROOT / "fitting" / "__init__.py").read_text())
+    block = next(n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", "") == "TYPE_CHECKING")
+    static = {a.asname or a.name for n in ast.walk(block) if isinstance(n, ast.ImportFrom) for a in n.names}
+    assert static == set(fitting.__all__)
+    bound = {n for n, v in vars(piezojax).items() if not n.startswith("_") and not isinstance(v, types.ModuleType)}
+    assert sorted(piezojax.__all__) == sorted(bound)
 
 
 def test_every_public_name_has_one_api_entry():
