@@ -417,8 +417,8 @@ def test_dead_plays_are_moved_to_the_widest_gaps():
 
 def test_a_kept_re_seeded_fit_reports_the_whole_command():
     """`whole_run`: the result of a kept re-seeded fit counts the steps, accepted steps and seconds of every fit
-    run (a round not kept included), starts from the first fit's initial cost and starts, and keeps the cost
-    history of the fits it comes from, one after the other in steps."""
+    run (a round not kept included), starts from the first fit's initial cost and starts, keeps the cost history of
+    the fits it comes from, one after the other in steps, and every fit's repairs."""
     import dataclasses
 
     from fitting._refine import whole_run
@@ -432,14 +432,16 @@ def test_a_kept_re_seeded_fit_reports_the_whole_command():
         starts: list | None
         history: list
         history_steps: list
+        repairs: list | None = None
 
-    first = Fit(10, 8, 2.0, 5.0, [{"cost": 1.0}, {"cost": 1.2}], [5.0, 2.0, 1.0], [0, 4, 10])
+    first = Fit(10, 8, 2.0, 5.0, [{"cost": 1.0}, {"cost": 1.2}], [5.0, 2.0, 1.0], [0, 4, 10], ["moved a start"])
     second = Fit(6, 5, 0.5, 1.5, None, [1.5, 0.9, 0.8], [0, 3, 6])  # re-seeded from the first, kept
     third = Fit(4, 2, 0.25, 1.1, None, [1.1, 0.85], [0, 4])  # re-seeded again, not kept
     out = whole_run(second, [first, second, third])
     assert (out.steps, out.accepted_steps, out.seconds) == (20, 15, 2.75)
     assert out.initial_cost == 5.0 and out.starts == [{"cost": 1.0, "first_of": 3}, {"cost": 1.2, "first_of": 3}]
     assert out.history == [5.0, 2.0, 1.0, 1.5, 0.9, 0.8] and out.history_steps == [0, 4, 10, 10, 13, 16]
+    assert out.repairs == ["moved a start"]  # every fit's repairs
 
 
 def test_the_report_names_modes_the_records_cannot_resolve():
